@@ -1,0 +1,29 @@
+# Two entry points (see README): `make train` and `make test`. Both create or reuse a
+# local virtual environment in .venv and install torch==2.13.0 (CPU) before the package,
+# so pip never pulls the CUDA build.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+
+.PHONY: setup train test bench clean
+
+$(VENV)/.installed: pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e ".[test]"
+	touch $@
+
+setup: $(VENV)/.installed
+
+train: $(VENV)/.installed
+	$(PY) -m plex_ma.random_agent
+
+test: $(VENV)/.installed
+	$(PY) -m pytest -q -n 2 tests
+
+bench: $(VENV)/.installed
+	$(PY) -m plex_ma.bench sim --num-envs 64 --resolution 128
+
+clean:
+	rm -rf $(VENV) runs *.egg-info

@@ -1,0 +1,229 @@
+"""The batched simulator: N worlds stepped by one call into compiled kernels.
+
+The simulator knows nothing of agents, turns or rewards: it moves bodies, renders RGB-D,
+keeps each world's ego map and answers geodesic queries. A single environment is this
+core with N = 1.
+
+Per world it holds: the scene index, the agent's pose, the episode's goal and its
+geodesic distance field (computed once per episode), the allocentric map built from
+depth, and the path length travelled since the episode began.
+
+Sensors:
+* RGB (H, W, 3) uint8 and depth (H, W, 1) float32: 90 degree horizontal field of view,
+  camera 1.25 m above the floor, square images of any size. Depth is *planar* (distance
+  along the optical axis, as in Habitat) in metres, clipped to [0, 10] and divided by 10.
+* GPS+compass: the pose plus optional zero-mean Gaussian noise, drawn fresh at every
+  step (``pose_noise=(sigma_position_m, sigma_heading_rad)``).
+* Ego map (SPEC section 2): every depth image, sub-sampled to at most 32x32 pixels, is
+  back-projected with the camera intrinsics and the *noisy* pose into an allocentric grid
+  of 0.25 m cells. Points between 0.1 m and the agent's height (1.5 m) mark obstacles
+  (obstacles are sticky: the highest point wins), points below 0.1 m mark explored
+  floor, and points above 1.5 m (ceiling, lintels) are dropped. The planner's view is a
+  crop of ``ego_size`` x ``ego_size`` cells of 0.5 m around the agent, rotated so that
+  row 0 is straight ahead: channel 0 obstacles, channel 1 explored free space.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from . import kernels as K
+from .bank import SceneBank
+from .episodes import Episode, Geodesics
+from .scene import AGENT_HEIGHT, CEILING_HEIGHT
+
+STOP, MOVE_FORWARD, TURN_LEFT, TURN_RIGHT = 0, 1, 2, 3
+ACTION_NAMES = ("STOP", "MOVE_FORWARD", "TURN_LEFT", "TURN_RIGHT")
+
+
+class BatchedSim:
+    """N worlds over one :class:`SceneBank`.
+
+    Args:
+        bank: the scenes the worlds live in.
+        num_worlds: N.
+        resolution: square image size in pixels (>= 8).
+        pose_noise: (position std in m, heading std in rad) of the GPS+compass noise.
+        egomap: keep ego maps (off for the flat baselines, which never read them).
+        seed: seeds the pose noise.
+    """
+
+    hfov = math.pi / 2
+    camera_height = 1.25
+    max_depth = 10.0
+    forward_step = 0.25
+    turn_angle = math.radians(10.0)
+    ego_size = 32
+    ego_cell = 0.5
+    amap_cell = 0.25
+    amap_size = 288  # 72 m around the episode start: covers any walk in a 30 m house
+
+    def __init__(self, bank: SceneBank, num_worlds: int, resolution: int = 128,
+                 pose_noise: tuple[float, float] = (0.0, 0.0), egomap: bool = True, seed: int = 0):
+        if not isinstance(num_worlds, (int, np.integer)) or num_worlds < 1:
+            raise ValueError(f"num_worlds must be a positive integer, got {num_worlds!r}")
+        if not isinstance(resolution, (int, np.integer)) or not (8 <= resolution <= 1024):
+            raise ValueError(f"resolution must be an integer in [8, 1024], got {resolution!r}")
+        pn = tuple(float(v) for v in pose_noise)
+        if len(pn) != 2 or not all(math.isfinite(v) and v >= 0 for v in pn):
+            raise ValueError(f"pose_noise must be two finite non-negative stds, got {pose_noise!r}")
+        self.bank = bank
+        self.n = int(num_worlds)
+        self.resolution = int(resolution)
+        self.pose_noise = pn
+        self.use_egomap = bool(egomap)
+        self.rng = np.random.default_rng(seed)
+        n, R = self.n, self.resolution
+        self.scene_idx = np.zeros(n, np.int64)
+        self.pos = np.zeros((n, 2), np.float64)
+        self.heading = np.zeros(n, np.float64)
+        self.goal = np.zeros((n, 2), np.float64)
+        self.fields = np.full((n, bank.max_cells), K.INF, np.float32)
+        self.episodes: list[Episode | None] = [None] * n
+        self.path_length = np.zeros(n, np.float64)
+        self.collided = np.zeros(n, np.bool_)
+        self.distance_to_goal = np.zeros(n, np.float64)
+        self.est_pose = np.zeros((n, 3), np.float64)
+        self.rgb = np.zeros((n, R, R, 3), np.uint8)
+        self.depth = np.zeros((n, R, R, 1), np.float32)
+        self.amap = np.zeros((n, self.amap_size, self.amap_size) if egomap else (n, 1, 1), np.uint8)
+        self.amap_origin = np.zeros((n, 2), np.float64)
+        self.geo = Geodesics(bank)
+        self._stride = max(1, R // 32)
+        self._all = np.ones(n, np.bool_)
+
+    # ---------------------------------------------------------------- episodes
+    def reset_world(self, i: int, episode: Episode, field: np.ndarray | None = None) -> None:
+        """Start ``episode`` in world ``i``; ``field`` is its goal field if already known."""
+        try:
+            s = self.bank.scene_ids.index(episode.scene_id)
+        except ValueError:
+            raise ValueError(f"episode {episode.episode_id}: scene {episode.scene_id!r} is not loaded") from None
+        grid = self.bank.grids[s]
+        start = np.asarray(episode.start_position, np.float64)
+        goal = np.asarray(episode.goal_position, np.float64)
+        if not grid.is_navigable(start):
+            raise ValueError(f"episode {episode.episode_id} in {episode.scene_id}: start {start.tolist()} "
+                             "is not navigable")
+        self.scene_idx[i] = s
+        self.pos[i] = start
+        self.heading[i] = (episode.start_heading + math.pi) % (2 * math.pi) - math.pi
+        self.goal[i] = goal
+        h, w = self.bank.h[s], self.bank.w[s]
+        if field is None:
+            self.geo.field(s, goal, out=self.fields[i])
+        else:
+            self.fields[i, : h * w] = field
+        self.episodes[i] = episode
+        self.path_length[i] = 0.0
+        self.collided[i] = False
+        d = self.geo.lookup(s, self.fields[i], start)
+        if not math.isfinite(d):
+            raise ValueError(f"episode {episode.episode_id} in {episode.scene_id}: goal unreachable from start")
+        self.distance_to_goal[i] = d
+        if self.use_egomap:
+            self.amap[i] = 0
+            self.amap_origin[i] = start - self.amap_size * self.amap_cell / 2
+        mask = np.zeros(self.n, np.bool_)
+        mask[i] = True
+        self._sense(mask)
+
+    # ---------------------------------------------------------------- stepping
+    def step(self, actions: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
+        """Apply one action per world (STOP moves nothing) and sense. Returns ``collided``.
+
+        ``active`` (bool, N) limits the step to some worlds; the others are untouched.
+        """
+        actions = np.asarray(actions, np.int64)
+        if actions.shape != (self.n,):
+            raise ValueError(f"expected {self.n} actions, got shape {actions.shape}")
+        if np.any((actions < 0) | (actions > 3)):
+            raise ValueError(f"actions must be in 0..3, got {actions.tolist()}")
+        active = self._all if active is None else np.asarray(active, np.bool_)
+        acts = np.where(active, actions, STOP)
+        old = self.pos.copy()
+        b = self.bank
+        K.move(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos, self.heading, acts,
+               self.forward_step, self.turn_angle, self.collided)
+        self.collided &= active
+        self.path_length += np.hypot(*(self.pos - old).T)
+        self._sense(active)
+        return self.collided
+
+    def _sense(self, active: np.ndarray) -> None:
+        b = self.bank
+        if np.all(active):
+            idx = slice(None)
+        else:
+            idx = np.flatnonzero(active)
+        # Rendering all worlds costs the same as masking inside the kernel for typical use
+        # (all worlds step together); partial steps render only the active ones.
+        if isinstance(idx, slice):
+            K.render(b.kind, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, b.klo, b.khi, b.kmat, b.kroom,
+                     b.room_wall_rgb, b.room_floor_rgb, b.mat_rgb, self.scene_idx, self.pos, self.heading,
+                     self.camera_height, CEILING_HEIGHT, self.hfov, self.max_depth, self.rgb, self.depth)
+        elif len(idx):
+            rgb = self.rgb[idx]
+            dep = self.depth[idx]
+            K.render(b.kind, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, b.klo, b.khi, b.kmat, b.kroom,
+                     b.room_wall_rgb, b.room_floor_rgb, b.mat_rgb, self.scene_idx[idx], self.pos[idx],
+                     self.heading[idx], self.camera_height, CEILING_HEIGHT, self.hfov, self.max_depth, rgb, dep)
+            self.rgb[idx] = rgb
+            self.depth[idx] = dep
+        sp, sh = self.pose_noise
+        est = np.concatenate([self.pos, self.heading[:, None]], axis=1)
+        if sp > 0 or sh > 0:
+            noise = self.rng.normal(size=(self.n, 3)) * np.array([sp, sp, sh])
+            est = est + noise
+            est[:, 2] = (est[:, 2] + math.pi) % (2 * math.pi) - math.pi
+        self.est_pose[active] = est[active]
+        if self.use_egomap:
+            K.egomap_update(self.depth, self.est_pose, self.amap_origin, self.amap, self.amap_cell, self._stride,
+                            self.hfov, self.max_depth, self.camera_height, 0.1, AGENT_HEIGHT, active)
+        d = np.empty(self.n)
+        K.field_lookup_batch(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.fields, self.pos, d)
+        self.distance_to_goal[active] = d[active]
+
+    # ---------------------------------------------------------------- queries
+    def egomap(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """Planner ego maps (len(rows), 2, 32, 32) float32 in [0, 1] from the noisy pose."""
+        if not self.use_egomap:
+            raise RuntimeError("this simulator was built with egomap=False")
+        rows = np.arange(self.n) if rows is None else np.asarray(rows, np.int64).reshape(-1)
+        out = np.zeros((len(rows), 2, self.ego_size, self.ego_size), np.float32)
+        K.egomap_crop(self.amap, self.amap_origin, self.amap_cell, self.est_pose, self.ego_cell, out, rows)
+        return out
+
+    def polar_to(self, targets: np.ndarray, rows: np.ndarray | None = None, noisy: bool = True) -> np.ndarray:
+        """(distance m, direction rad) from each world's (noisy) pose to world-frame targets."""
+        rows = np.arange(self.n) if rows is None else np.asarray(rows, np.int64).reshape(-1)
+        pose = self.est_pose[rows] if noisy else np.concatenate([self.pos[rows], self.heading[rows, None]], 1)
+        d = np.asarray(targets, np.float64).reshape(-1, 2) - pose[:, :2]
+        dist = np.hypot(d[:, 0], d[:, 1])
+        ang = np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2]
+        ang = (ang + math.pi) % (2 * math.pi) - math.pi
+        return np.stack([dist, ang], 1).astype(np.float32)
+
+    def geodesic(self, i: int, a: np.ndarray, b: np.ndarray) -> float:
+        """Geodesic distance between two points in world ``i``'s scene (``inf`` if not connected)."""
+        return self.geo.distance(int(self.scene_idx[i]), a, b)
+
+    def snap_to_navigable(self, i: int, point: np.ndarray, max_radius: float = 8.0) -> np.ndarray:
+        """The nearest point to ``point`` reachable from world ``i``'s agent."""
+        s = int(self.scene_idx[i])
+        b = self.bank
+        nav, off, h, w, ox, oy, cs = b.grid_args(s)
+        r, c = b.grids[s].world_to_cell(self.pos[i])
+        comp = int(b.grids[s].component[r, c])
+        x, y, ok = K.nearest_navigable(nav, b.comp, off, h, w, ox, oy, cs, float(point[0]), float(point[1]),
+                                       comp, max_radius)
+        if not ok:
+            return self.pos[i].copy()
+        return np.array([x, y])
+
+    def memory_per_world(self) -> int:
+        """Bytes of per-world state (images, ego map, goal field, pose)."""
+        per = (self.rgb.nbytes + self.depth.nbytes + self.amap.nbytes + self.fields.nbytes) / self.n
+        return int(per + 8 * 16)

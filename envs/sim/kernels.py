@@ -1,0 +1,662 @@
+"""Compiled (numba) hot loops of the simulator: ray casting, motion, geodesics, ego map.
+
+Every kernel works on a *scene bank*: the grids of all loaded scenes concatenated into
+flat arrays, with per-scene offsets and shapes (see :mod:`.bank`). A batch of worlds is
+processed in one call, so Python overhead does not grow with the number of worlds.
+
+Conventions: positions in metres, headings in radians counter-clockwise from +x; the
+camera looks along the heading. Image column ``j`` has horizontal angle
+``atan((W/2 - j - 0.5) / f)`` (positive = left) and row ``i`` the vertical slope
+``(H/2 - i - 0.5) / f`` (positive = up), with ``f = (W/2) / tan(hfov/2)``.
+Depth is *planar*: the distance along the optical axis (Habitat's convention), not the
+length of the ray.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+MAX_BOUNDARIES = 16
+INF = 1e30
+
+# ---------------------------------------------------------------------------------------
+# Grid helpers
+
+
+@njit(cache=True, inline="always")
+def _cell(ox, oy, cs, x, y):
+    return int(math.floor((y - oy) / cs)), int(math.floor((x - ox) / cs))
+
+
+@njit(cache=True)
+def is_nav(nav, off, h, w, ox, oy, cs, x, y):
+    r, c = _cell(ox, oy, cs, x, y)
+    if r < 0 or r >= h or c < 0 or c >= w:
+        return False
+    return nav[off + r * w + c] != 0
+
+
+# ---------------------------------------------------------------------------------------
+# Rendering
+
+
+@njit(cache=True, inline="always")
+def _shade(rgb, f):
+    return (min(255.0, rgb[0] * f), min(255.0, rgb[1] * f), min(255.0, rgb[2] * f))
+
+
+@njit(cache=True, parallel=True, fastmath=True)
+def render(kind, g_off, g_h, g_w, g_ox, g_oy, cs, klo, khi, kmat, kroom,
+           room_wall_rgb, room_floor_rgb, mat_rgb, scene_idx, pos, heading,
+           cam_height, ceiling, hfov, max_depth, out_rgb, out_depth):
+    """Render RGB-D for every world; fills ``out_rgb`` (N,H,W,3) and ``out_depth`` (N,H,W,1)."""
+    n = pos.shape[0]
+    H = out_rgb.shape[1]
+    W = out_rgb.shape[2]
+    f = (W / 2.0) / math.tan(hfov / 2.0)
+    for job in prange(n * W):
+        wi = job // W
+        j = job % W
+        s = scene_idx[wi]
+        off = g_off[s]
+        gh = g_h[s]
+        gw = g_w[s]
+        ox = g_ox[s]
+        oy = g_oy[s]
+        px = pos[wi, 0]
+        py = pos[wi, 1]
+        phi = math.atan((W / 2.0 - j - 0.5) / f)
+        cphi = math.cos(phi)
+        ang = heading[wi] + phi
+        dx = math.cos(ang)
+        dy = math.sin(ang)
+        # --- march the horizontal ray through the grid, recording kind changes ---
+        bt = np.empty(MAX_BOUNDARIES, np.float64)
+        bk = np.empty(MAX_BOUNDARIES, np.int64)
+        bax = np.empty(MAX_BOUNDARIES, np.int64)
+        gx = (px - ox) / cs
+        gy = (py - oy) / cs
+        col = int(math.floor(gx))
+        row = int(math.floor(gy))
+        cur = kind[off + row * gw + col]
+        bt[0] = 0.0
+        bk[0] = cur
+        bax[0] = 0
+        nb = 1
+        if dx > 1e-12:
+            sx = 1
+            tdx = cs / dx
+            tmx = (col + 1 - gx) * cs / dx
+        elif dx < -1e-12:
+            sx = -1
+            tdx = -cs / dx
+            tmx = (gx - col) * cs / (-dx)
+        else:
+            sx = 0
+            tdx = INF
+            tmx = INF
+        if dy > 1e-12:
+            sy = 1
+            tdy = cs / dy
+            tmy = (row + 1 - gy) * cs / dy
+        elif dy < -1e-12:
+            sy = -1
+            tdy = -cs / dy
+            tmy = (gy - row) * cs / (-dy)
+        else:
+            sy = 0
+            tdy = INF
+            tmy = INF
+        tmax = max_depth / cphi + cs
+        closed = False  # ended on a full-height blocker
+        while True:
+            if tmx < tmy:
+                t = tmx
+                col += sx
+                tmx += tdx
+                axis = 0
+            else:
+                t = tmy
+                row += sy
+                tmy += tdy
+                axis = 1
+            if t > tmax:
+                break
+            if row < 0 or row >= gh or col < 0 or col >= gw:
+                break
+            k = kind[off + row * gw + col]
+            if k != cur:
+                cur = k
+                bt[nb] = t
+                bk[nb] = k
+                bax[nb] = axis
+                nb += 1
+                if klo[k] <= 0.0 and khi[k] >= ceiling:
+                    closed = True
+                    break
+                if nb == MAX_BOUNDARIES:
+                    break
+        # --- fill the column front to back. Every kind is attached to the floor (lo == 0)
+        # or to the ceiling (hi >= ceiling), so the rows not yet drawn always form one
+        # interval [top, bot]; each face or surface fills rows from one of its ends. ---
+        top = 0
+        bot = H - 1
+        hc = H / 2.0 - 0.5
+        for q in range(nb):
+            if top > bot:
+                break
+            k = bk[q]
+            z0 = bt[q] * cphi
+            z1 = INF
+            if q + 1 < nb:
+                z1 = bt[q + 1] * cphi
+            lo = klo[k]
+            hi = khi[k]
+            solid = hi > lo
+            m = kmat[k]
+            if q > 0 and solid:
+                # vertical face at the region's entry: rows whose ray height at z0 is in [lo, hi]
+                i0 = max(top, int(math.ceil(hc - f * (hi - cam_height) / z0)))
+                i1 = min(bot, int(math.floor(hc - f * (lo - cam_height) / z0)))
+                if m <= 1 or m == 3:  # wall or void: coloured by the room it is seen from
+                    pr = kroom[bk[q - 1]]
+                    c3 = room_wall_rgb[pr] if pr >= 0 else mat_rgb[1]
+                else:
+                    c3 = mat_rgb[m]
+                fac = 1.0 if bax[q] == 0 else 0.78
+                cr, cg, cb = _shade(c3, fac)
+                dz = min(z0, max_depth) / max_depth
+                for i in range(i0, i1 + 1):
+                    out_depth[wi, i, j, 0] = dz
+                    out_rgb[wi, i, j, 0] = np.uint8(cr)
+                    out_rgb[wi, i, j, 1] = np.uint8(cg)
+                    out_rgb[wi, i, j, 2] = np.uint8(cb)
+                if i1 >= i0:
+                    if lo <= 0.0 and hi >= ceiling:
+                        top = bot + 1
+                        break
+                    if lo <= 0.0:
+                        bot = i0 - 1
+                    else:
+                        top = i1 + 1
+            # horizontal surfaces inside the region
+            fl = hi if (solid and lo <= 0.0) else 0.0
+            ce = lo if (solid and lo > 0.0) else ceiling
+            # bottom surface (floor or furniture top): rows that descend below fl before z1
+            ib = top
+            if z1 < INF:
+                ib = max(top, int(math.floor(hc - f * (fl - cam_height) / z1)) + 1)
+            else:
+                ib = max(top, int(math.floor(hc)) + 1)
+            if fl <= 0.0:
+                rm = kroom[k]
+                c3 = room_floor_rgb[rm] if rm >= 0 else mat_rgb[m]
+                for i in range(ib, bot + 1):
+                    zs = (fl - cam_height) * f / (hc - i)
+                    if zs < z0:
+                        zs = z0
+                    d = zs / cphi
+                    chk = (int(math.floor((px + d * dx) * 2.0)) + int(math.floor((py + d * dy) * 2.0))) & 1
+                    cr, cg, cb = _shade(c3, 1.0 - 0.12 * chk)
+                    out_depth[wi, i, j, 0] = min(zs, max_depth) / max_depth
+                    out_rgb[wi, i, j, 0] = np.uint8(cr)
+                    out_rgb[wi, i, j, 1] = np.uint8(cg)
+                    out_rgb[wi, i, j, 2] = np.uint8(cb)
+            else:
+                cr, cg, cb = _shade(mat_rgb[m], 1.2)
+                for i in range(ib, bot + 1):
+                    zs = (fl - cam_height) * f / (hc - i)
+                    if zs < z0:
+                        zs = z0
+                    out_depth[wi, i, j, 0] = min(zs, max_depth) / max_depth
+                    out_rgb[wi, i, j, 0] = np.uint8(cr)
+                    out_rgb[wi, i, j, 1] = np.uint8(cg)
+                    out_rgb[wi, i, j, 2] = np.uint8(cb)
+            if ib <= bot:
+                bot = ib - 1
+            # top surface (ceiling or lintel underside): rows that rise above ce before z1
+            if z1 < INF:
+                it = min(bot, int(math.ceil(hc - f * (ce - cam_height) / z1)) - 1)
+            else:
+                it = min(bot, int(math.ceil(hc)) - 1)
+            if ce >= ceiling:
+                cr, cg, cb = 236.0, 234.0, 228.0
+            else:
+                cr, cg, cb = _shade(mat_rgb[m], 0.7)
+            for i in range(top, it + 1):
+                zs = (ce - cam_height) * f / (hc - i)
+                if zs < z0:
+                    zs = z0
+                out_depth[wi, i, j, 0] = min(zs, max_depth) / max_depth
+                out_rgb[wi, i, j, 0] = np.uint8(cr)
+                out_rgb[wi, i, j, 1] = np.uint8(cg)
+                out_rgb[wi, i, j, 2] = np.uint8(cb)
+            if it >= top:
+                top = it + 1
+        # rows left open (march ended by range or by too many boundaries): far away
+        for i in range(top, bot + 1):
+            out_depth[wi, i, j, 0] = 1.0
+            out_rgb[wi, i, j, 0] = np.uint8(128)
+            out_rgb[wi, i, j, 1] = np.uint8(128)
+            out_rgb[wi, i, j, 2] = np.uint8(128)
+        if closed:
+            pass
+
+
+# ---------------------------------------------------------------------------------------
+# Motion
+
+
+@njit(cache=True, inline="always")
+def _try_move(nav, off, h, w, ox, oy, cs, x, y, dx, dy):
+    """Move from (x, y) by (dx, dy) while every sampled point is navigable."""
+    L = math.sqrt(dx * dx + dy * dy)
+    n = int(math.ceil(L / (cs * 0.25)))
+    if n < 1:
+        return x, y, False
+    bx = x
+    by = y
+    for k in range(1, n + 1):
+        cx = x + dx * k / n
+        cy = y + dy * k / n
+        if not is_nav(nav, off, h, w, ox, oy, cs, cx, cy):
+            return bx, by, True
+        bx = cx
+        by = cy
+    return bx, by, False
+
+
+@njit(cache=True, parallel=True)
+def move(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, heading, actions,
+         forward, turn, collided):
+    """Apply actions (0 stop, 1 forward, 2 left, 3 right) in place; sets ``collided``."""
+    for wi in prange(pos.shape[0]):
+        a = actions[wi]
+        collided[wi] = False
+        if a == 2:
+            heading[wi] = (heading[wi] + turn + math.pi) % (2 * math.pi) - math.pi
+        elif a == 3:
+            heading[wi] = (heading[wi] - turn + math.pi) % (2 * math.pi) - math.pi
+        elif a == 1:
+            s = scene_idx[wi]
+            off = g_off[s]
+            h = g_h[s]
+            w = g_w[s]
+            ox = g_ox[s]
+            oy = g_oy[s]
+            x = pos[wi, 0]
+            y = pos[wi, 1]
+            dx = forward * math.cos(heading[wi])
+            dy = forward * math.sin(heading[wi])
+            nx, ny, blocked = _try_move(nav, off, h, w, ox, oy, cs, x, y, dx, dy)
+            if blocked:
+                collided[wi] = True
+                # Slide along the axis-aligned component that makes the most progress.
+                rx = x + dx - nx
+                ry = y + dy - ny
+                ax, ay, _ = _try_move(nav, off, h, w, ox, oy, cs, nx, ny, rx, 0.0)
+                bx, by, _ = _try_move(nav, off, h, w, ox, oy, cs, nx, ny, 0.0, ry)
+                pa = (ax - x) * dx + (ay - y) * dy
+                pb = (bx - x) * dx + (by - y) * dy
+                if pa >= pb and pa > (nx - x) * dx + (ny - y) * dy:
+                    nx, ny = ax, ay
+                elif pb > (nx - x) * dx + (ny - y) * dy:
+                    nx, ny = bx, by
+            pos[wi, 0] = nx
+            pos[wi, 1] = ny
+
+
+# ---------------------------------------------------------------------------------------
+# Geodesic distance: Dijkstra on the 8-connected navigable grid (no corner cutting).
+# A continuous point p is linked to the navigable centres of the 2x2 block of cells
+# around it; its distance is min(field[c] + |p - c|). This is never below the euclidean
+# distance and matches a reference Dijkstra over the same graph.
+
+
+@njit(cache=True, inline="always")
+def _heap_push(hk, hv, hpos, size, key, v):
+    i = size
+    hk[i] = key
+    hv[i] = v
+    hpos[v] = i
+    while i > 0:
+        p = (i - 1) >> 1
+        if hk[p] <= hk[i]:
+            break
+        hk[p], hk[i] = hk[i], hk[p]
+        hv[p], hv[i] = hv[i], hv[p]
+        hpos[hv[i]] = i
+        hpos[hv[p]] = p
+        i = p
+    return size + 1
+
+
+@njit(cache=True, inline="always")
+def _heap_decrease(hk, hv, hpos, i, key):
+    hk[i] = key
+    while i > 0:
+        p = (i - 1) >> 1
+        if hk[p] <= hk[i]:
+            break
+        hk[p], hk[i] = hk[i], hk[p]
+        hv[p], hv[i] = hv[i], hv[p]
+        hpos[hv[i]] = i
+        hpos[hv[p]] = p
+        i = p
+
+
+@njit(cache=True, inline="always")
+def _heap_pop(hk, hv, hpos, size):
+    key = hk[0]
+    v = hv[0]
+    hpos[v] = -2  # settled
+    size -= 1
+    if size > 0:
+        hk[0] = hk[size]
+        hv[0] = hv[size]
+        hpos[hv[0]] = 0
+        i = 0
+        while True:
+            l = 2 * i + 1
+            if l >= size:
+                break
+            m = l
+            if l + 1 < size and hk[l + 1] < hk[l]:
+                m = l + 1
+            if hk[i] <= hk[m]:
+                break
+            hk[m], hk[i] = hk[i], hk[m]
+            hv[m], hv[i] = hv[i], hv[m]
+            hpos[hv[i]] = i
+            hpos[hv[m]] = m
+            i = m
+    return key, v, size
+
+
+@njit(cache=True)
+def _block(ox, oy, cs, x, y):
+    """Row/col of the lower-left cell of the 2x2 block whose centres surround (x, y)."""
+    return int(math.floor((y - oy) / cs - 0.5)), int(math.floor((x - ox) / cs - 0.5))
+
+
+@njit(cache=True)
+def dijkstra_field(nav, off, h, w, ox, oy, cs, gx, gy, dist, hk, hv, hpos):
+    """Fill ``dist[:h*w]`` with geodesic distances to the point (gx, gy); INF if unreachable.
+
+    ``hk``, ``hv``, ``hpos`` are scratch arrays of at least ``h*w`` entries.
+    """
+    n = h * w
+    for v in range(n):
+        dist[v] = INF
+        hpos[v] = -1
+    size = 0
+    r0, c0 = _block(ox, oy, cs, gx, gy)
+    for dr in range(2):
+        for dc in range(2):
+            r = r0 + dr
+            c = c0 + dc
+            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
+                continue
+            cx = ox + (c + 0.5) * cs
+            cy = oy + (r + 0.5) * cs
+            d = math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2)
+            v = r * w + c
+            dist[v] = d
+            size = _heap_push(hk, hv, hpos, size, d, v)
+    diag = cs * math.sqrt(2.0)
+    while size > 0:
+        d, v, size = _heap_pop(hk, hv, hpos, size)
+        r = v // w
+        c = v % w
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                if dr == 0 and dc == 0:
+                    continue
+                rr = r + dr
+                cc = c + dc
+                if rr < 0 or rr >= h or cc < 0 or cc >= w:
+                    continue
+                if nav[off + rr * w + cc] == 0:
+                    continue
+                if dr != 0 and dc != 0:
+                    if nav[off + r * w + cc] == 0 or nav[off + rr * w + c] == 0:
+                        continue
+                    nd = d + diag
+                else:
+                    nd = d + cs
+                u = rr * w + cc
+                if nd < dist[u]:
+                    dist[u] = nd
+                    if hpos[u] == -1:
+                        size = _heap_push(hk, hv, hpos, size, nd, u)
+                    elif hpos[u] >= 0:
+                        _heap_decrease(hk, hv, hpos, hpos[u], nd)
+    return size
+
+
+@njit(cache=True)
+def field_lookup(nav, off, h, w, ox, oy, cs, dist, x, y):
+    """Geodesic distance of the point (x, y) given a goal's field; INF if unreachable."""
+    r0, c0 = _block(ox, oy, cs, x, y)
+    best = INF
+    for dr in range(2):
+        for dc in range(2):
+            r = r0 + dr
+            c = c0 + dc
+            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
+                continue
+            d = dist[r * w + c]
+            if d >= INF:
+                continue
+            cx = ox + (c + 0.5) * cs
+            cy = oy + (r + 0.5) * cs
+            t = d + math.sqrt((cx - x) ** 2 + (cy - y) ** 2)
+            if t < best:
+                best = t
+    return best
+
+
+@njit(cache=True, parallel=True)
+def field_lookup_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, fields, pos, out):
+    for wi in prange(pos.shape[0]):
+        s = scene_idx[wi]
+        out[wi] = field_lookup(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, fields[wi],
+                               pos[wi, 0], pos[wi, 1])
+
+
+@njit(cache=True)
+def astar(nav, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp, hk, hv, hpos):
+    """Geodesic distance between two points by A* over the same graph as the fields.
+
+    ``g``/``stamp``/``hk``/``hv``/``hpos`` are scratch arrays of at least ``h*w`` entries;
+    ``stamp`` marks which entries of ``g`` and ``hpos`` are valid for this call, so the
+    scratch never needs clearing. Returns INF when the points are not connected.
+    """
+    diag = cs * math.sqrt(2.0)
+    size = 0
+    r0, c0 = _block(ox, oy, cs, sx, sy)
+    for dr in range(2):
+        for dc in range(2):
+            r = r0 + dr
+            c = c0 + dc
+            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
+                continue
+            cx = ox + (c + 0.5) * cs
+            cy = oy + (r + 0.5) * cs
+            v = r * w + c
+            d = math.sqrt((cx - sx) ** 2 + (cy - sy) ** 2)
+            stamp[v] = cur_stamp
+            g[v] = d
+            hpos[v] = -1
+            size = _heap_push(hk, hv, hpos, size, d + math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2), v)
+    tr0, tc0 = _block(ox, oy, cs, gx, gy)
+    best = INF
+    while size > 0:
+        f, v, size = _heap_pop(hk, hv, hpos, size)
+        if f >= best:
+            break
+        d = g[v]
+        r = v // w
+        c = v % w
+        if r - tr0 >= 0 and r - tr0 < 2 and c - tc0 >= 0 and c - tc0 < 2:
+            cx = ox + (c + 0.5) * cs
+            cy = oy + (r + 0.5) * cs
+            t = d + math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2)
+            if t < best:
+                best = t
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                if dr == 0 and dc == 0:
+                    continue
+                rr = r + dr
+                cc = c + dc
+                if rr < 0 or rr >= h or cc < 0 or cc >= w:
+                    continue
+                if nav[off + rr * w + cc] == 0:
+                    continue
+                if dr != 0 and dc != 0:
+                    if nav[off + r * w + cc] == 0 or nav[off + rr * w + c] == 0:
+                        continue
+                    nd = d + diag
+                else:
+                    nd = d + cs
+                u = rr * w + cc
+                if stamp[u] != cur_stamp:
+                    stamp[u] = cur_stamp
+                    g[u] = INF
+                    hpos[u] = -1
+                if nd < g[u]:
+                    g[u] = nd
+                    ux = ox + (cc + 0.5) * cs
+                    uy = oy + (rr + 0.5) * cs
+                    fu = nd + math.sqrt((ux - gx) ** 2 + (uy - gy) ** 2)
+                    if hpos[u] == -1:
+                        size = _heap_push(hk, hv, hpos, size, fu, u)
+                    elif hpos[u] >= 0:
+                        _heap_decrease(hk, hv, hpos, hpos[u], fu)
+    return best
+
+
+@njit(cache=True)
+def nearest_navigable(nav, comp, off, h, w, ox, oy, cs, x, y, want_comp, max_radius):
+    """Nearest point to (x, y) that is a navigable cell centre of component ``want_comp``
+    (or the point itself if it is already in such a cell). Returns (x, y, found)."""
+    r, c = _cell(ox, oy, cs, x, y)
+    if r >= 0 and r < h and c >= 0 and c < w:
+        v = off + r * w + c
+        if nav[v] != 0 and comp[v] == want_comp:
+            return x, y, True
+    R = int(math.ceil(max_radius / cs))
+    best = INF
+    bx = x
+    by = y
+    for ring in range(1, R + 1):
+        if best < (ring - 1) * cs:
+            break
+        for dr in range(-ring, ring + 1):
+            for dc in range(-ring, ring + 1):
+                if abs(dr) != ring and abs(dc) != ring:
+                    continue
+                rr = r + dr
+                cc = c + dc
+                if rr < 0 or rr >= h or cc < 0 or cc >= w:
+                    continue
+                v = off + rr * w + cc
+                if nav[v] == 0 or comp[v] != want_comp:
+                    continue
+                cx = ox + (cc + 0.5) * cs
+                cy = oy + (rr + 0.5) * cs
+                d = (cx - x) ** 2 + (cy - y) ** 2
+                if d < best:
+                    best = d
+                    bx = cx
+                    by = cy
+    return bx, by, best < INF
+
+
+# ---------------------------------------------------------------------------------------
+# Egocentric map (paper A.1): back-project depth with the (noisy) pose, accumulate in an
+# allocentric grid, crop and rotate around the agent.
+
+EGO_EXPLORED = 1
+EGO_OBSTACLE = 2
+
+
+@njit(cache=True, parallel=True, fastmath=True)
+def egomap_update(depth, est_pose, map_origin, amap, map_cs, stride, hfov, max_depth,
+                  cam_height, floor_eps, agent_height, active):
+    """Accumulate back-projected depth points into each world's allocentric map ``amap``."""
+    n = depth.shape[0]
+    H = depth.shape[1]
+    W = depth.shape[2]
+    M = amap.shape[1]
+    f = (W / 2.0) / math.tan(hfov / 2.0)
+    for wi in prange(n):
+        if not active[wi]:
+            continue
+        x0 = est_pose[wi, 0]
+        y0 = est_pose[wi, 1]
+        th = est_pose[wi, 2]
+        fx = math.cos(th)
+        fy = math.sin(th)
+        for i in range(stride // 2, H, stride):
+            up_s = (H / 2.0 - i - 0.5) / f
+            for j in range(stride // 2, W, stride):
+                d = depth[wi, i, j, 0]
+                if d >= 0.999:
+                    continue
+                z = d * max_depth
+                height = cam_height + up_s * z
+                if height > agent_height:
+                    continue  # ceiling and lintels: not an obstacle for the agent
+                left = z * (W / 2.0 - j - 0.5) / f
+                wx = x0 + z * fx - left * fy
+                wy = y0 + z * fy + left * fx
+                c = int(math.floor((wx - map_origin[wi, 0]) / map_cs))
+                r = int(math.floor((wy - map_origin[wi, 1]) / map_cs))
+                if r < 0 or r >= M or c < 0 or c >= M:
+                    continue
+                if height >= floor_eps:
+                    amap[wi, r, c] |= EGO_OBSTACLE | EGO_EXPLORED
+                else:
+                    amap[wi, r, c] |= EGO_EXPLORED
+
+
+@njit(cache=True, parallel=True)
+def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
+    """Crop ``out[k]`` (2, S, S) for world ``rows[k]``: channel 0 obstacles, channel 1
+    explored free space; row 0 is ahead of the agent, column 0 to its left."""
+    S = out.shape[2]
+    M = amap.shape[1]
+    sub = 2
+    for k in prange(rows.shape[0]):
+        wi = rows[k]
+        x0 = est_pose[wi, 0]
+        y0 = est_pose[wi, 1]
+        th = est_pose[wi, 2]
+        fx = math.cos(th)
+        fy = math.sin(th)
+        for a in range(S):
+            for b in range(S):
+                obs = 0.0
+                free = 0.0
+                for sa in range(sub):
+                    for sb in range(sub):
+                        fwd = (S / 2.0 - a - (sa + 0.5) / sub) * ego_cs
+                        left = (S / 2.0 - b - (sb + 0.5) / sub) * ego_cs
+                        wx = x0 + fwd * fx - left * fy
+                        wy = y0 + fwd * fy + left * fx
+                        c = int(math.floor((wx - map_origin[wi, 0]) / map_cs))
+                        r = int(math.floor((wy - map_origin[wi, 1]) / map_cs))
+                        if r < 0 or r >= M or c < 0 or c >= M:
+                            continue
+                        v = amap[wi, r, c]
+                        if v & EGO_OBSTACLE:
+                            obs = 1.0
+                        elif v & EGO_EXPLORED:
+                            free += 1.0 / (sub * sub)
+                out[k, 0, a, b] = obs
+                out[k, 1, a, b] = free
