@@ -1,5 +1,13 @@
 """Environments of plex-ma (installed as ``plex_ma.envs``).
 
-* :mod:`plex_ma.envs.sim`: the batched indoor simulator (scenes, physics, RGB-D, geodesics,
-  ego map). It knows nothing of agents.
+* :mod:`plex_ma.envs.plex_nav_v0`: the two-agent PettingZoo AEC environment (planner, executor).
+* :mod:`plex_ma.envs.pointnav`: ``gymnasium.make("plex_ma/PointNav-v0")``, the flat task.
+* :mod:`plex_ma.envs.vector`: batched versions of both for trainers.
+* :mod:`plex_ma.envs.rules`: the one implementation of turn order, rewards and metrics.
+* :mod:`plex_ma.envs.sim`: the batched indoor simulator; it knows nothing of agents.
 """
+
+import gymnasium
+
+if "plex_ma/PointNav-v0" not in gymnasium.registry:
+    gymnasium.register(id="plex_ma/PointNav-v0", entry_point="plex_ma.envs.pointnav:PointNavEnv")

@@ -154,24 +154,9 @@ class BatchedSim:
 
     def _sense(self, active: np.ndarray) -> None:
         b = self.bank
-        if np.all(active):
-            idx = slice(None)
-        else:
-            idx = np.flatnonzero(active)
-        # Rendering all worlds costs the same as masking inside the kernel for typical use
-        # (all worlds step together); partial steps render only the active ones.
-        if isinstance(idx, slice):
-            K.render(b.kind, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, b.klo, b.khi, b.kmat, b.kroom,
-                     b.room_wall_rgb, b.room_floor_rgb, b.mat_rgb, self.scene_idx, self.pos, self.heading,
-                     self.camera_height, CEILING_HEIGHT, self.hfov, self.max_depth, self.rgb, self.depth)
-        elif len(idx):
-            rgb = self.rgb[idx]
-            dep = self.depth[idx]
-            K.render(b.kind, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, b.klo, b.khi, b.kmat, b.kroom,
-                     b.room_wall_rgb, b.room_floor_rgb, b.mat_rgb, self.scene_idx[idx], self.pos[idx],
-                     self.heading[idx], self.camera_height, CEILING_HEIGHT, self.hfov, self.max_depth, rgb, dep)
-            self.rgb[idx] = rgb
-            self.depth[idx] = dep
+        K.render(b.kind, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, b.klo, b.khi, b.kmat, b.kroom,
+                 b.room_wall_rgb, b.room_floor_rgb, b.mat_rgb, self.scene_idx, self.pos, self.heading,
+                 self.camera_height, CEILING_HEIGHT, self.hfov, self.max_depth, self.rgb, self.depth, active)
         sp, sh = self.pose_noise
         est = np.concatenate([self.pos, self.heading[:, None]], axis=1)
         if sp > 0 or sh > 0:
@@ -205,6 +190,19 @@ class BatchedSim:
         ang = np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2]
         ang = (ang + math.pi) % (2 * math.pi) - math.pi
         return np.stack([dist, ang], 1).astype(np.float32)
+
+    def geodesic_to(self, targets: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Geodesic distance from each world's agent to a world-frame target (A*), for
+        ``rows``; returns (N,) with entries for ``rows`` filled (``inf`` if unreachable)."""
+        b = self.bank
+        g = self.geo
+        out = np.full(self.n, np.inf)
+        rows = np.asarray(rows, np.int64)
+        g._stamp = K.astar_batch(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos,
+                                 np.asarray(targets, np.float64), rows, g.g, g.stamp, g._stamp, g.hk, g.hv, g.hpos,
+                                 out)
+        out[out >= K.INF] = np.inf
+        return out
 
     def geodesic(self, i: int, a: np.ndarray, b: np.ndarray) -> float:
         """Geodesic distance between two points in world ``i``'s scene (``inf`` if not connected)."""

@@ -15,9 +15,18 @@ length of the ray.
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 from numba import njit, prange
+
+# numba's on-disk cache (``cache=True``) pickles the name of the module that defined a
+# kernel and re-imports it by that name when it loads the cache. This package can be
+# imported as ``plex_ma.envs`` (installed) and as ``envs`` (from the repository root), so
+# a cache written under one name must load under the other: register both names.
+for _alias in ("plex_ma.envs.sim.kernels", "envs.sim.kernels"):
+    sys.modules.setdefault(_alias, sys.modules[__name__])
+del _alias
 
 MAX_BOUNDARIES = 16
 INF = 1e30
@@ -51,8 +60,8 @@ def _shade(rgb, f):
 @njit(cache=True, parallel=True, fastmath=True)
 def render(kind, g_off, g_h, g_w, g_ox, g_oy, cs, klo, khi, kmat, kroom,
            room_wall_rgb, room_floor_rgb, mat_rgb, scene_idx, pos, heading,
-           cam_height, ceiling, hfov, max_depth, out_rgb, out_depth):
-    """Render RGB-D for every world; fills ``out_rgb`` (N,H,W,3) and ``out_depth`` (N,H,W,1)."""
+           cam_height, ceiling, hfov, max_depth, out_rgb, out_depth, active):
+    """Render RGB-D for the active worlds into ``out_rgb`` (N,H,W,3) and ``out_depth`` (N,H,W,1)."""
     n = pos.shape[0]
     H = out_rgb.shape[1]
     W = out_rgb.shape[2]
@@ -60,6 +69,8 @@ def render(kind, g_off, g_h, g_w, g_ox, g_oy, cs, klo, khi, kmat, kroom,
     for job in prange(n * W):
         wi = job // W
         j = job % W
+        if not active[wi]:
+            continue
         s = scene_idx[wi]
         off = g_off[s]
         gh = g_h[s]
@@ -538,6 +549,21 @@ def astar(nav, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp, hk, h
                     elif hpos[u] >= 0:
                         _heap_decrease(hk, hv, hpos, hpos[u], fu)
     return best
+
+
+@njit(cache=True)
+def astar_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, rows, g, stamp, stamp0, hk, hv,
+                hpos, out):
+    """A* distance from ``pos[r]`` to ``targets[r]`` for each ``r`` in ``rows`` (serial);
+    returns the last stamp used."""
+    st = stamp0
+    for k in range(rows.shape[0]):
+        r = rows[k]
+        s = scene_idx[r]
+        st += 1
+        out[r] = astar(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, pos[r, 0], pos[r, 1],
+                       targets[r, 0], targets[r, 1], g, stamp, st, hk, hv, hpos)
+    return st
 
 
 @njit(cache=True)

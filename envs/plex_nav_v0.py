@@ -1,0 +1,264 @@
+"""
+# PLEX navigation (``plex_nav_v0``)
+
+```python
+from plex_ma.envs import plex_nav_v0
+env = plex_nav_v0.env(resolution=128)
+```
+
+| | |
+|---|---|
+| Agents | `possible_agents = ["planner", "executor"]` |
+| Turn order | planner, then the executor for up to `n_ex` actions, then the planner again |
+| Planner action | `Dict(stop=Discrete(2), subgoal=Box([0, -pi], [rho_max, pi]))` |
+| Planner observation | `Dict(ego_map=Box(0, 1, (2, 32, 32)), goal=Box((2,)), eli=Box((128,)))` |
+| Executor action | `Dict(action=Discrete(4), eli=Box((128,)))` |
+| Executor observation | `Dict(rgb=Box(0, 255, (H, W, 3), uint8), depth=Box(0, 1, (H, W, 1)), subgoal=Box((2,)))` |
+| Render modes | `rgb_array` (top-down map, path, goal, current sub-goal) |
+| `is_parallelizable` | False |
+
+Two cooperating agents navigate to a PointGoal in an indoor scene (the PLEX paper's
+hierarchy). The **planner** sees a 32x32 egocentric top-down map (0.5 m cells; channel 0
+obstacles, channel 1 explored free space; row 0 ahead of the agent, built only from depth
+and the noisy pose), the end goal as (distance m, direction rad) from GPS+compass, and
+the Executor Latent Information (ELI) that the executor sent with the last action of its
+previous turn. It either stops the episode (`stop=1`) or proposes a sub-goal (distance,
+direction) relative to the agent; the sub-goal is then fixed in the world and moved to
+the nearest navigable point if needed. The **executor** sees RGB-D and the sub-goal
+vector (recomputed after every step) and acts: 0 STOP, 1 MOVE_FORWARD 0.25 m,
+2 TURN_LEFT 10 deg, 3 TURN_RIGHT 10 deg, sending a 128-value ELI with every action. Its
+STOP only hands control back to the planner; so does its `n_ex`-th action.
+
+Angles are radians, counter-clockwise, 0 = the agent's heading.
+
+## Rewards
+
+Written into `rewards` for both agents on every executor action, and summed by PettingZoo
+into `_cumulative_rewards` until that agent's next turn, so `last()` gives the planner
+everything it earned during the executor's turn.
+
+| agent | on every executor action | extra |
+|---|---|---|
+| executor | decrease of geodesic distance to the sub-goal - 0.01 slack - 0.01 on collision | +1.0 for STOP within 0.5 m (geodesic) of the sub-goal |
+| planner | decrease of geodesic distance to the end goal - 0.01 slack - 0.01 on collision | +10 when its stop is a success |
+
+The planner's return over an episode is thus the flat agent's episode reward (Table 1 of
+the paper). A success is a planner stop with the geodesic distance to the goal below
+0.2 m; SPL is S * l / max(l, p).
+
+## Episode end
+
+A planner stop terminates both agents; 500 executor actions truncate both. Each agent then
+takes one dead step (`step(None)`), as PettingZoo requires. `infos[agent]` carries
+`scene_id`, `episode_id`, `geodesic_distance` (start to goal), `distance_to_goal`,
+`collisions`, `steps` (executor actions so far), and at the end `success` and `spl`.
+
+## Arguments
+
+| argument | default | meaning |
+|---|---|---|
+| `resolution` | 128 | RGB-D image size (square) |
+| `n_ex` | 10 | executor actions per turn at most |
+| `max_steps` | 500 | executor actions before truncation |
+| `rho_max` | 4.0 | largest sub-goal distance (m) |
+| `eli` | True | False: the ablation; the planner always sees zeros |
+| `scenes` | "procgen" | scene source ("procgen", "r2v" or a directory of plans) |
+| `split` | "train" | "train", "val" or "test" (val/test use the fixed episode files) |
+| `num_scenes` | None | scenes in the split (None: 72 train / 16 val / 16 test) |
+| `episodes_file` | None | a fixed episode file to cycle through |
+| `pose_noise` | (0.0, 0.0) | GPS+compass Gaussian noise std (m, rad) |
+| `slack_reward`, `collision_reward`, `success_reward`, `subgoal_reward` | -0.01, -0.01, 10, 1 | reward weights |
+| `success_distance`, `subgoal_radius` | 0.2, 0.5 | metres |
+| `executor_memory_restart` | True | hint for trainers: restart the executor's memory with each sub-goal (`env.unwrapped.executor_memory_restart`) |
+| `render_mode` | None | "rgb_array" |
+
+## Why `is_parallelizable` is False, and `max_cycles_test`
+
+The agents do not act round-robin: the executor acts up to `n_ex` times per planner
+decision, and only one of them acts at any moment, so the parallel API (every agent acts
+each step) does not describe it. `pettingzoo.utils.conversions.turn_based_aec_to_parallel`
+still works: it presents each AEC step as a parallel step in which only the current agent
+acts (the other agent's action is ignored), with the observations of both agents.
+`pettingzoo.test.max_cycles_test` does not apply: it needs a `max_cycles` argument with
+round-robin cycles, while this env's length is bounded by `max_steps` executor actions.
+
+## SuperSuit wrappers
+
+The observation and action spaces are `Dict` spaces, so most SuperSuit wrappers, which
+expect `Box` or `Discrete` spaces (`color_reduction_v0`, `resize_v1`,
+`frame_stack_v1`, `normalize_obs_v0`, `pad_action_space_v0`, ...), do not apply to the
+native env. Reward and timing wrappers do: `clip_reward_v0`, `sticky_actions_v0` and
+`frame_skip_v0` (the last two repeat an agent's action, which only makes sense for the
+executor). `compat_env()` gives a Box/Discrete version for generic trainers.
+
+## Version history
+
+* v0: initial release.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from gymnasium.utils import EzPickle
+from pettingzoo import AECEnv
+from pettingzoo.utils import wrappers
+
+from .rules import EXECUTOR, PLANNER, InvalidAction, PlexConfig, PlexWorlds, make_config
+from .sim.topdown import topdown_view
+from .spaces import executor_action_space, executor_observation_space, planner_action_space, planner_observation_space
+
+AGENTS = ["planner", "executor"]
+
+
+def env(**kwargs) -> AECEnv:
+    """The environment with PettingZoo's standard wrappers (order enforcing, bounds)."""
+    e = raw_env(**kwargs)
+    e = wrappers.OrderEnforcingWrapper(e)
+    return e
+
+
+class raw_env(AECEnv, EzPickle):
+    """The PLEX Planner/Executor environment; see the module docstring."""
+
+    metadata = {"name": "plex_nav_v0", "render_modes": ["rgb_array"], "is_parallelizable": False, "render_fps": 10}
+
+    def __init__(self, render_mode: str | None = None, **config):
+        EzPickle.__init__(self, render_mode=render_mode, **config)
+        super().__init__()
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.render_mode = render_mode
+        self.config: PlexConfig = make_config(PlexConfig, config)
+        self.worlds = PlexWorlds(self.config, num_worlds=1)
+        self.possible_agents = list(AGENTS)
+        self.agents = []
+        self.observation_spaces = {"planner": planner_observation_space(self.config),
+                                   "executor": executor_observation_space(self.config)}
+        self.action_spaces = {"planner": planner_action_space(self.config),
+                              "executor": executor_action_space(self.config)}
+        self.executor_memory_restart = self.config.executor_memory_restart
+        self._path: list[np.ndarray] = []
+        self._seeded = False
+
+    def observation_space(self, agent):
+        return self.observation_spaces[agent]
+
+    def action_space(self, agent):
+        return self.action_spaces[agent]
+
+    # ------------------------------------------------------------------ API
+    def reset(self, seed: int | None = None, options: dict | None = None) -> None:
+        if seed is not None or not self._seeded:
+            self.worlds.seed(seed)
+            self._seeded = True
+            for k, a in enumerate(AGENTS):
+                self.action_spaces[a].seed(None if seed is None else seed + k)
+        episodes = None
+        if options and "episode" in options:
+            episodes = [options["episode"]]
+        self.worlds.reset_rows([0], episodes)
+        self.agents = list(AGENTS)
+        self.rewards = {a: 0.0 for a in AGENTS}
+        self._cumulative_rewards = {a: 0.0 for a in AGENTS}
+        self.terminations = {a: False for a in AGENTS}
+        self.truncations = {a: False for a in AGENTS}
+        info = self.worlds.info(0)
+        self.infos = {a: dict(info) for a in AGENTS}
+        self.agent_selection = "planner"
+        self._path = [self.worlds.sim.pos[0].copy()]
+
+    def observe(self, agent):
+        if agent == "planner":
+            obs = self.worlds.planner_obs([0])
+        elif agent == "executor":
+            obs = self.worlds.executor_obs([0])
+        else:
+            raise ValueError(f"unknown agent {agent!r}; agents are {AGENTS}")
+        return {k: v[0] for k, v in obs.items()}
+
+    def step(self, action) -> None:
+        agent = self.agent_selection
+        if not self.agents:
+            raise InvalidAction("step() called after the episode ended; call reset()")
+        if self.terminations[agent] or self.truncations[agent]:
+            if action is not None:
+                raise InvalidAction(f"{agent}: the episode has ended; the only valid action is None (dead step)")
+            self._was_dead_step(action)
+            return
+        w = self.worlds
+        if agent == "planner":
+            stop, subgoal = _unpack(action, agent, ("stop", "subgoal"))
+            out = w.step(stop=np.reshape(stop, (1,)) if np.ndim(stop) == 0 else stop,
+                         subgoal=np.asarray(subgoal)[None] if np.ndim(subgoal) == 1 else subgoal)
+        else:
+            act, eli = _unpack(action, agent, ("action", "eli"))
+            out = w.step(action=np.reshape(act, (1,)) if np.ndim(act) == 0 else act,
+                         eli=np.asarray(eli)[None] if np.ndim(eli) == 1 else eli)
+        self._cumulative_rewards[agent] = 0.0
+        self.rewards = {"planner": float(out.rewards[0, PLANNER]), "executor": float(out.rewards[0, EXECUTOR])}
+        self._accumulate_rewards()
+        if out.acted[0] == EXECUTOR:
+            self._path.append(w.sim.pos[0].copy())
+        info = w.info(0)
+        self.infos = {a: dict(info) for a in self.agents}
+        if out.terminated[0] or out.truncated[0]:
+            for a in self.agents:
+                self.terminations[a] = bool(out.terminated[0])
+                self.truncations[a] = bool(out.truncated[0])
+            self.agent_selection = agent
+            self._deads_step_first()
+        else:
+            self.agent_selection = AGENTS[int(w.turn[0])]
+
+    def render(self):
+        if self.render_mode is None:
+            import gymnasium
+
+            gymnasium.logger.warn("render() called without render_mode; create the env with render_mode='rgb_array'")
+            return None
+        w = self.worlds
+        sim = w.sim
+        grid = sim.bank.grids[int(sim.scene_idx[0])]
+        show_sub = w.turn[0] == EXECUTOR or w.planner_decisions[0] > 0
+        return topdown_view(grid, path=np.array(self._path), goal=sim.goal[0],
+                            subgoal=w.subgoal[0] if show_sub else None,
+                            subgoal_raw=w.subgoal_raw[0] if show_sub else None,
+                            agent_pose=(sim.pos[0, 0], sim.pos[0, 1], sim.heading[0]))
+
+    def close(self) -> None:
+        pass
+
+
+def _unpack(action, agent: str, keys: tuple[str, str]):
+    """Check an agent's Dict action and return its two parts, with clear errors."""
+    if action is None:
+        raise InvalidAction(f"{agent}: action is None but the {agent} is alive; expected a dict with keys {keys}")
+    if not isinstance(action, dict):
+        raise InvalidAction(f"{agent}: expected a dict with keys {keys}, got {type(action).__name__} {action!r}")
+    other = {"planner": ("action", "eli"), "executor": ("stop", "subgoal")}[agent]
+    if set(action) == set(other):
+        raise InvalidAction(f"{agent}: got the other agent's action format {sorted(action)}; "
+                            f"it is the {agent}'s turn and its action has keys {keys}")
+    missing = [k for k in keys if k not in action]
+    extra = [k for k in action if k not in keys]
+    if missing or extra:
+        raise InvalidAction(f"{agent}: action keys {sorted(action)} (missing {missing}, unexpected {extra}); "
+                            f"expected {list(keys)}")
+    a, b = action[keys[0]], action[keys[1]]
+    if np.ndim(a) != 0:
+        raise InvalidAction(f"{agent}: action {keys[0]!r} must be a scalar, got shape {np.shape(a)}")
+    want = (2,) if agent == "planner" else (128,)
+    if np.shape(b) != want:
+        raise InvalidAction(f"{agent}: action {keys[1]!r} has shape {np.shape(b)}, expected {want}")
+    if isinstance(a, (float, np.floating)) and not (math.isfinite(a) and float(a).is_integer()):
+        raise InvalidAction(f"{agent}: action {keys[0]!r} must be an integer, got {a!r}")
+    return a, b
+
+
+def compat_env(**config):
+    """Box/Discrete version for generic PettingZoo trainers (see :mod:`.compat`)."""
+    from .compat import compat_env as _compat
+
+    return _compat(**config)

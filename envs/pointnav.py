@@ -1,0 +1,72 @@
+"""``gymnasium.make("plex_ma/PointNav-v0", **config)``: the flat PointNav task (SPEC section 4).
+
+One agent in the same world, episodes, sensors and rewards as ``plex_nav_v0``.
+
+* Observation: ``Dict(rgb=Box(0, 255, (H, W, 3), uint8), depth=Box(0, 1, (H, W, 1)),
+  pointgoal=Box((2,)))``; ``pointgoal`` is (distance m, direction rad) to the end goal
+  from GPS+compass.
+* Action: ``Discrete(4)``: 0 STOP, 1 MOVE_FORWARD 0.25 m, 2 TURN_LEFT 10 deg, 3 TURN_RIGHT 10 deg.
+* Reward: decrease of geodesic distance to the goal - 0.01 slack - 0.01 per collision,
+  +10 on success. STOP ends the episode (success when the geodesic distance is below
+  0.2 m); ``max_steps`` (500) actions truncate it.
+* Info: ``scene_id``, ``episode_id``, ``geodesic_distance``, ``distance_to_goal``,
+  ``collisions``, ``steps``, and at the end ``success`` and ``spl``.
+
+Arguments: those of :class:`~plex_ma.envs.rules.NavConfig` plus ``render_mode``
+("rgb_array": top-down view). The batched version for trainers is
+:class:`~plex_ma.envs.vector.PointNavVectorEnv`.
+"""
+
+from __future__ import annotations
+
+import gymnasium
+import numpy as np
+
+from .rules import NavConfig, PointNavWorlds, make_config
+from .sim.topdown import topdown_view
+from .spaces import pointnav_observation_space
+
+
+class PointNavEnv(gymnasium.Env):
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, render_mode: str | None = None, **config):
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.render_mode = render_mode
+        self.config: NavConfig = make_config(NavConfig, config)
+        self.worlds = PointNavWorlds(self.config, 1)
+        self.observation_space = pointnav_observation_space(self.config)
+        self.action_space = gymnasium.spaces.Discrete(4)
+        self._path: list[np.ndarray] = []
+        self._seeded = False
+
+    def _obs(self) -> dict:
+        return {k: v[0] for k, v in self.worlds.obs([0]).items()}
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None or not self._seeded:
+            self.worlds.seed(seed)
+            self._seeded = True
+        episodes = [options["episode"]] if options and "episode" in options else None
+        self.worlds.reset_rows([0], episodes)
+        self._path = [self.worlds.sim.pos[0].copy()]
+        return self._obs(), self.worlds.info(0)
+
+    def step(self, action):
+        if self.worlds.done[0]:
+            raise RuntimeError("step() called after the episode ended; call reset()")
+        if isinstance(action, (dict, list, tuple, str)) or np.ndim(action) != 0:
+            raise ValueError(f"action must be an integer in 0..3, got {action!r}")
+        rew, term, trunc = self.worlds.step(np.reshape(action, (1,)))
+        self._path.append(self.worlds.sim.pos[0].copy())
+        return self._obs(), float(rew[0]), bool(term[0]), bool(trunc[0]), self.worlds.info(0)
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        sim = self.worlds.sim
+        grid = sim.bank.grids[int(sim.scene_idx[0])]
+        return topdown_view(grid, path=np.array(self._path), goal=sim.goal[0],
+                            agent_pose=(sim.pos[0, 0], sim.pos[0, 1], sim.heading[0]))

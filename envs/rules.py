@@ -1,0 +1,476 @@
+"""The one implementation of PLEX's turn order, rewards, episode ends and metrics.
+
+:class:`PlexWorlds` applies SPEC section 3 to N worlds of a :class:`BatchedSim`; the
+AEC environment (``plex_nav_v0``) is these rules with N = 1 and the vector env is these
+rules with autoreset. :class:`PointNavWorlds` applies SPEC section 4 (one flat agent) and
+shares the episode handling, the goal-progress reward and the metrics.
+
+Turn order (per world): after a reset the planner acts. A planner action either stops
+the episode (both agents terminate; +``success_reward`` to the planner on success) or
+sets a sub-goal, fixed in the world and snapped to the nearest point the agent can
+reach. The executor then acts until it chooses STOP or has acted ``n_ex`` times, and the
+turn returns to the planner. The episode truncates after ``max_steps`` executor actions.
+
+Rewards written on every executor step:
+
+==========  ==========================================================================
+executor    geodesic progress towards the sub-goal + slack + collision
+            (+ ``subgoal_reward`` when it chooses STOP within ``subgoal_radius``)
+planner     geodesic progress towards the end goal + slack + collision
+==========  ==========================================================================
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from .sim import BatchedSim, Episode, Geodesics, scene_bank
+from .sim.core import MOVE_FORWARD, STOP
+from .sim.episodes import load_episodes, sample_episode
+
+PLANNER, EXECUTOR = 0, 1
+ELI_DIM = 128
+CLOSE_FAR_SPLIT = 5.76  # metres (paper, Fig. 5b)
+
+
+class InvalidAction(ValueError):
+    """An action is malformed; the message names the agent and the problem."""
+
+
+@dataclass
+class NavConfig:
+    """Settings shared by the PLEX and the flat PointNav environments."""
+
+    resolution: int = 128  # square RGB-D image size in pixels
+    max_steps: int = 500  # agent (executor) actions before the episode truncates
+    scenes: str = "procgen"  # scene source: "procgen", "r2v", or a directory of plans
+    split: str = "train"  # "train", "val" or "test"
+    num_scenes: int | None = None  # scenes in the split (None: the source's default)
+    episodes_file: str | None = None  # fixed episodes to cycle through (default for val/test)
+    pose_noise: tuple[float, float] = (0.0, 0.0)  # GPS+compass noise std: (metres, radians)
+    slack_reward: float = -0.01  # added on every agent action
+    collision_reward: float = -0.01  # added when a move is blocked
+    success_reward: float = 10.0  # added when the episode ends by a successful stop
+    success_distance: float = 0.2  # geodesic distance (m) under which a stop succeeds
+
+    def validate(self) -> None:
+        def bad(name, why):
+            raise ValueError(f"config {name}={getattr(self, name)!r}: {why}")
+
+        if not isinstance(self.resolution, (int, np.integer)) or not 16 <= self.resolution <= 1024:
+            bad("resolution", "must be an integer in [16, 1024]")
+        if not isinstance(self.max_steps, (int, np.integer)) or self.max_steps < 1:
+            bad("max_steps", "must be a positive integer")
+        if self.split not in ("train", "val", "test"):
+            bad("split", "must be 'train', 'val' or 'test'")
+        if not isinstance(self.scenes, str) or not self.scenes:
+            bad("scenes", "must be a source name or a directory")
+        if self.num_scenes is not None and (not isinstance(self.num_scenes, (int, np.integer)) or self.num_scenes < 1):
+            bad("num_scenes", "must be a positive integer or None")
+        try:
+            pn = tuple(float(v) for v in self.pose_noise)
+        except (TypeError, ValueError):
+            bad("pose_noise", "must be two numbers (position std m, heading std rad)")
+        if len(pn) != 2 or not all(math.isfinite(v) and v >= 0 for v in pn):
+            bad("pose_noise", "must be two finite non-negative numbers")
+        for name in ("slack_reward", "collision_reward", "success_reward"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v):
+                bad(name, "must be a finite number")
+        if not (isinstance(self.success_distance, (int, float)) and 0 < self.success_distance < 5):
+            bad("success_distance", "must be in (0, 5) metres")
+
+
+@dataclass
+class PlexConfig(NavConfig):
+    """Settings of the PLEX two-agent environment (``plex_nav_v0``)."""
+
+    n_ex: int = 10  # executor actions per turn at most (N_EX)
+    rho_max: float = 4.0  # largest sub-goal distance (m)
+    eli: bool = True  # pass the ELI to the planner (False: the ablation, zeros)
+    subgoal_reward: float = 1.0  # executor bonus for STOP within subgoal_radius
+    subgoal_radius: float = 0.5  # metres
+    executor_memory_restart: bool = True  # hint to trainers: reset executor memory per sub-goal
+    eli_dim: int = field(default=ELI_DIM, init=False)
+
+    def validate(self) -> None:
+        super().validate()
+        if not isinstance(self.n_ex, (int, np.integer)) or self.n_ex < 1:
+            raise ValueError(f"config n_ex={self.n_ex!r}: must be a positive integer")
+        if not (isinstance(self.rho_max, (int, float)) and 0 < self.rho_max <= 20):
+            raise ValueError(f"config rho_max={self.rho_max!r}: must be in (0, 20] metres")
+        if not isinstance(self.eli, (bool, np.bool_)):
+            raise ValueError(f"config eli={self.eli!r}: must be True or False")
+        if not (isinstance(self.subgoal_radius, (int, float)) and 0 < self.subgoal_radius < 5):
+            raise ValueError(f"config subgoal_radius={self.subgoal_radius!r}: must be in (0, 5) metres")
+
+
+def make_config(cls, kwargs: dict):
+    """Build and validate a config from keyword arguments, naming unknown keys."""
+    known = {f.name for f in fields(cls) if f.init}
+    unknown = sorted(set(kwargs) - known)
+    if unknown:
+        raise TypeError(f"unknown config key(s) {unknown}; known: {sorted(known)}")
+    cfg = cls(**kwargs)
+    if isinstance(cfg.pose_noise, list):
+        cfg.pose_noise = tuple(cfg.pose_noise)
+    cfg.validate()
+    return cfg
+
+
+def progress_reward(d_prev: np.ndarray, d_new: np.ndarray, collided: np.ndarray, cfg: NavConfig) -> np.ndarray:
+    """Geodesic progress + slack + collision penalty: the goal-side reward of every action."""
+    return (d_prev - d_new) + cfg.slack_reward + cfg.collision_reward * collided
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+class _Worlds:
+    """Episodes, metrics and infos of N worlds; subclasses add the agents' rules."""
+
+    def __init__(self, cfg: NavConfig, num_worlds: int, seed: int | None, egomap: bool):
+        self.cfg = cfg
+        self.n = int(num_worlds)
+        self.bank = scene_bank(cfg.scenes, cfg.split, cfg.num_scenes)
+        self.sim = BatchedSim(self.bank, self.n, resolution=cfg.resolution, pose_noise=cfg.pose_noise, egomap=egomap)
+        self.geo = Geodesics(self.bank)
+        path = cfg.episodes_file
+        if path is None and cfg.split != "train":
+            path = _default_episode_file(cfg.scenes, cfg.split)
+        self.fixed_episodes: list[Episode] | None = None
+        if path is not None:
+            eps = load_episodes(path)
+            known = set(self.bank.scene_ids)
+            eps = [e for e in eps if e.scene_id in known]
+            if not eps:
+                raise ValueError(f"episode file {path}: none of its scenes belong to {cfg.scenes}/{cfg.split}")
+            self.fixed_episodes = eps
+        self._next_fixed = 0
+        self.steps = np.zeros(self.n, np.int64)
+        self.collisions = np.zeros(self.n, np.int64)
+        self.done = np.ones(self.n, np.bool_)
+        self.success = np.zeros(self.n, np.float32)
+        self.spl = np.zeros(self.n, np.float32)
+        self.seed(seed)
+
+    def seed(self, seed: int | None) -> None:
+        ss = np.random.SeedSequence(seed)
+        self.rngs = [np.random.default_rng(s) for s in ss.spawn(self.n)]
+        self.sim.rng = np.random.default_rng(ss.spawn(1)[0])
+        self._next_fixed = 0
+
+    def _new_episode(self, i: int) -> tuple[Episode, np.ndarray | None]:
+        if self.fixed_episodes is not None:
+            ep = self.fixed_episodes[self._next_fixed % len(self.fixed_episodes)]
+            self._next_fixed += 1
+            return ep, None
+        rng = self.rngs[i]
+        return sample_episode(self.bank, int(rng.integers(len(self.bank))), rng, self.geo)
+
+    def reset_rows(self, rows, episodes: list[Episode] | None = None) -> None:
+        """Start new episodes in ``rows`` (given ones, or the next sampled/fixed ones)."""
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        for k, i in enumerate(rows):
+            ep, fld = (episodes[k], None) if episodes is not None else self._new_episode(int(i))
+            self.sim.reset_world(int(i), ep, fld)
+        self.steps[rows] = 0
+        self.collisions[rows] = 0
+        self.done[rows] = False
+        self.success[rows] = 0.0
+        self.spl[rows] = 0.0
+
+    def _finish(self, rows: np.ndarray, success: np.ndarray) -> None:
+        """Close the episodes of ``rows``; ``success`` (bool per row) decides S in SPL."""
+        self.done[rows] = True
+        self.success[rows] = success.astype(np.float32)
+        l = np.array([self.sim.episodes[i].geodesic_distance for i in rows])
+        p = self.sim.path_length[rows]
+        self.spl[rows] = (success * l / np.maximum(np.maximum(l, p), 1e-9)).astype(np.float32)
+
+    def info(self, i: int) -> dict:
+        """The info dict of world ``i`` (SPEC: scene_id, geodesic_distance, distance_to_goal,
+        collisions, steps; success and spl once the episode has ended)."""
+        ep = self.sim.episodes[i]
+        d = {
+            "scene_id": ep.scene_id,
+            "episode_id": ep.episode_id,
+            "geodesic_distance": float(ep.geodesic_distance),
+            "distance_to_goal": float(self.sim.distance_to_goal[i]),
+            "collisions": int(self.collisions[i]),
+            "steps": int(self.steps[i]),
+        }
+        if self.done[i]:
+            d["success"] = float(self.success[i])
+            d["spl"] = float(self.spl[i])
+        return d
+
+    def goal_vector(self, rows) -> np.ndarray:
+        return self.sim.polar_to(self.sim.goal[rows], rows)
+
+
+@dataclass
+class PlexStep:
+    """What one batched step did, per world (arrays of length N)."""
+
+    rewards: np.ndarray  # (N, 2) float32: [planner, executor] earned this step
+    acted: np.ndarray  # (N,) int8: who acted this step (PLANNER / EXECUTOR, -1: nothing)
+    executor_turn_end: np.ndarray  # (N,) bool: the executor's turn ended (STOP, n_ex or episode end)
+    executor_stopped: np.ndarray  # (N,) bool: ... because it chose STOP
+    terminated: np.ndarray  # (N,) bool: episode ended by a planner stop
+    truncated: np.ndarray  # (N,) bool: episode ended by max_steps
+
+
+class PlexWorlds(_Worlds):
+    """PLEX's rules over N worlds (see the module docstring)."""
+
+    def __init__(self, cfg: PlexConfig, num_worlds: int = 1, seed: int | None = None):
+        super().__init__(cfg, num_worlds, seed, egomap=True)
+        n = self.n
+        self.turn = np.zeros(n, np.int8)
+        self.turn_steps = np.zeros(n, np.int64)
+        self.subgoal = np.zeros((n, 2), np.float64)  # snapped, fixed in the world
+        self.subgoal_raw = np.zeros((n, 2), np.float64)  # as proposed, before snapping
+        self.subgoal_dist = np.zeros(n, np.float64)  # geodesic distance agent -> sub-goal
+        self.eli = np.zeros((n, ELI_DIM), np.float32)  # last ELI the executor sent
+        self.planner_decisions = np.zeros(n, np.int64)
+
+    def reset_rows(self, rows, episodes=None) -> None:
+        super().reset_rows(rows, episodes)
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        self.turn[rows] = PLANNER
+        self.turn_steps[rows] = 0
+        self.eli[rows] = 0.0
+        self.subgoal[rows] = self.sim.pos[rows]
+        self.subgoal_raw[rows] = self.sim.pos[rows]
+        self.subgoal_dist[rows] = 0.0
+        self.planner_decisions[rows] = 0
+
+    # ------------------------------------------------------------------ observations
+    def planner_obs(self, rows) -> dict:
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        return {
+            "ego_map": self.sim.egomap(rows),
+            "goal": self.goal_vector(rows),
+            "eli": self.eli[rows].copy() if self.cfg.eli else np.zeros((len(rows), ELI_DIM), np.float32),
+        }
+
+    def executor_obs(self, rows) -> dict:
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        return {
+            "rgb": self.sim.rgb[rows].copy(),
+            "depth": self.sim.depth[rows].copy(),
+            "subgoal": self.sim.polar_to(self.subgoal[rows], rows),
+        }
+
+    # ------------------------------------------------------------------ validation
+    def check_planner_action(self, stop, subgoal, who: str = "planner") -> tuple[np.ndarray, np.ndarray]:
+        """Validate batched planner actions: stop (B,) in {0,1}, subgoal (B,2) finite in range."""
+        stop = _int_array(stop, who, "stop")
+        sg = _float_array(subgoal, who, "subgoal", (len(stop), 2))
+        if np.any((stop != 0) & (stop != 1)):
+            raise InvalidAction(f"{who} action 'stop' must be 0 or 1, got {stop.tolist()}")
+        rho, th = sg[:, 0], sg[:, 1]
+        if np.any(rho < 0) or np.any(rho > self.cfg.rho_max):
+            raise InvalidAction(f"{who} action 'subgoal' distance must be in [0, {self.cfg.rho_max}], "
+                                f"got {rho.tolist()}")
+        if np.any(np.abs(th) > np.pi + 1e-6):
+            raise InvalidAction(f"{who} action 'subgoal' direction must be in [-pi, pi], got {th.tolist()}")
+        return stop, sg
+
+    @staticmethod
+    def check_executor_action(action, eli, who: str = "executor") -> tuple[np.ndarray, np.ndarray]:
+        """Validate batched executor actions: action (B,) in 0..3, eli (B,128) finite."""
+        a = _int_array(action, who, "action")
+        if np.any((a < 0) | (a > 3)):
+            raise InvalidAction(f"{who} action 'action' must be in 0..3 (STOP, FORWARD, LEFT, RIGHT), "
+                                f"got {a.tolist()}")
+        e = _float_array(eli, who, "eli", (len(a), ELI_DIM))
+        return a, e
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, stop=None, subgoal=None, action=None, eli=None) -> PlexStep:
+        """One action for every world that is not done: the planner's (``stop``, ``subgoal``)
+        where it is the planner's turn, the executor's (``action``, ``eli``) elsewhere.
+        Arrays are full length N; entries for the other agent's worlds are ignored.
+        Actions are validated before anything changes."""
+        n = self.n
+        live = ~self.done
+        pl = np.flatnonzero(live & (self.turn == PLANNER))
+        ex = np.flatnonzero(live & (self.turn == EXECUTOR))
+        if len(pl):
+            if stop is None or subgoal is None:
+                raise InvalidAction("planner: it is the planner's turn; its action needs 'stop' and 'subgoal'")
+            stop_a, sg = self.check_planner_action(_rows_of(stop, n, (), "planner", "stop")[pl],
+                                                   _rows_of(subgoal, n, (2,), "planner", "subgoal")[pl])
+        if len(ex):
+            if action is None or eli is None:
+                raise InvalidAction("executor: it is the executor's turn; its action needs 'action' and 'eli'")
+            act_a, eli_a = self.check_executor_action(_rows_of(action, n, (), "executor", "action")[ex],
+                                                      _rows_of(eli, n, (ELI_DIM,), "executor", "eli")[ex])
+        out = PlexStep(
+            rewards=np.zeros((n, 2), np.float32), acted=np.full(n, -1, np.int8),
+            executor_turn_end=np.zeros(n, np.bool_), executor_stopped=np.zeros(n, np.bool_),
+            terminated=np.zeros(n, np.bool_), truncated=np.zeros(n, np.bool_))
+        if len(pl):
+            self._planner_step(pl, stop_a, sg, out)
+        if len(ex):
+            self._executor_step(ex, act_a, eli_a, out)
+        return out
+
+    def _planner_step(self, rows, stop, sg, out: PlexStep) -> None:
+        cfg = self.cfg
+        out.acted[rows] = PLANNER
+        self.planner_decisions[rows] += 1
+        ends = rows[stop == 1]
+        if len(ends):
+            success = self.sim.distance_to_goal[ends] < cfg.success_distance
+            out.rewards[ends, PLANNER] += cfg.success_reward * success
+            out.terminated[ends] = True
+            self._finish(ends, success)
+        go = stop == 0
+        rows, sg = rows[go], sg[go]
+        if len(rows):
+            # The sub-goal is set relative to the agent's (noisy) pose and then fixed in the world.
+            pose = self.sim.est_pose[rows]
+            ang = pose[:, 2] + sg[:, 1]
+            raw = pose[:, :2] + sg[:, :1] * np.stack([np.cos(ang), np.sin(ang)], 1)
+            self.subgoal_raw[rows] = raw
+            for i, p in zip(rows, raw):
+                self.subgoal[i] = self.sim.snap_to_navigable(int(i), p)
+            self.subgoal_dist[rows] = self._subgoal_distance(rows)
+            self.turn[rows] = EXECUTOR
+            self.turn_steps[rows] = 0
+
+    def _subgoal_distance(self, rows) -> np.ndarray:
+        d = self.sim.geodesic_to(self.subgoal, rows)[rows]
+        if not np.all(np.isfinite(d)):
+            bad = rows[~np.isfinite(d)]
+            raise RuntimeError(f"sub-goal unreachable in worlds {bad.tolist()} after snapping; this is a bug")
+        return d
+
+    def _executor_step(self, rows, action, eli, out: PlexStep) -> None:
+        cfg = self.cfg
+        sim = self.sim
+        out.acted[rows] = EXECUTOR
+        acts = np.zeros(self.n, np.int64)
+        acts[rows] = action
+        active = np.zeros(self.n, np.bool_)
+        active[rows] = True
+        d_goal_prev = sim.distance_to_goal[rows].copy()
+        d_sub_prev = self.subgoal_dist[rows].copy()
+        collided = sim.step(acts, active)[rows]
+        d_sub = self._subgoal_distance(rows)
+        self.subgoal_dist[rows] = d_sub
+        stopped = action == STOP
+        ex_r = progress_reward(d_sub_prev, d_sub, collided, cfg)
+        ex_r += cfg.subgoal_reward * (stopped & (d_sub < cfg.subgoal_radius))
+        pl_r = progress_reward(d_goal_prev, sim.distance_to_goal[rows], collided, cfg)
+        out.rewards[rows, EXECUTOR] += ex_r.astype(np.float32)
+        out.rewards[rows, PLANNER] += pl_r.astype(np.float32)
+        if cfg.eli:
+            self.eli[rows] = eli
+        self.collisions[rows] += collided
+        self.steps[rows] += 1
+        self.turn_steps[rows] += 1
+        turn_end = stopped | (self.turn_steps[rows] >= cfg.n_ex)
+        trunc = self.steps[rows] >= cfg.max_steps
+        out.executor_stopped[rows] = stopped
+        out.executor_turn_end[rows] = turn_end | trunc
+        self.turn[rows[turn_end]] = PLANNER
+        tr = rows[trunc]
+        if len(tr):
+            out.truncated[tr] = True
+            self._finish(tr, np.zeros(len(tr), np.bool_))
+
+
+class PointNavWorlds(_Worlds):
+    """The flat PointNav rules (SPEC section 4) over N worlds: STOP ends the episode."""
+
+    def __init__(self, cfg: NavConfig, num_worlds: int = 1, seed: int | None = None):
+        super().__init__(cfg, num_worlds, seed, egomap=False)
+
+    def obs(self, rows) -> dict:
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        return {"rgb": self.sim.rgb[rows].copy(), "depth": self.sim.depth[rows].copy(),
+                "pointgoal": self.goal_vector(rows)}
+
+    def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Apply one action per live world. Returns (rewards, terminated, truncated)."""
+        cfg = self.cfg
+        a = _int_array(actions, "agent", "action")
+        if a.shape != (self.n,):
+            raise InvalidAction(f"agent: expected {self.n} actions, got shape {a.shape}")
+        if np.any((a < 0) | (a > 3)):
+            raise InvalidAction(f"agent: action must be in 0..3 (STOP, FORWARD, LEFT, RIGHT), got {a.tolist()}")
+        live = ~self.done
+        rows = np.flatnonzero(live)
+        rew = np.zeros(self.n, np.float32)
+        term = np.zeros(self.n, np.bool_)
+        trunc = np.zeros(self.n, np.bool_)
+        d_prev = self.sim.distance_to_goal.copy()
+        collided = self.sim.step(np.where(live, a, STOP), live)
+        rew[rows] = progress_reward(d_prev[rows], self.sim.distance_to_goal[rows], collided[rows], cfg)
+        self.collisions[rows] += collided[rows]
+        self.steps[rows] += 1
+        stops = rows[a[rows] == STOP]
+        if len(stops):
+            success = self.sim.distance_to_goal[stops] < cfg.success_distance
+            rew[stops] += cfg.success_reward * success
+            term[stops] = True
+            self._finish(stops, success)
+        tr = rows[(self.steps[rows] >= cfg.max_steps) & ~term[rows]]
+        if len(tr):
+            trunc[tr] = True
+            self._finish(tr, np.zeros(len(tr), np.bool_))
+        return rew, term, trunc
+
+
+def _rows_of(x, n: int, tail: tuple, who: str, key: str) -> np.ndarray:
+    """``x`` as an array of shape (n, *tail), or InvalidAction naming the problem."""
+    a = np.asarray(x)
+    if a.dtype == object:
+        raise InvalidAction(f"{who} action {key!r} must be numeric, got {type(x).__name__}")
+    if a.shape != (n,) + tail:
+        raise InvalidAction(f"{who} action {key!r} has shape {a.shape}, expected {(n,) + tail}")
+    return a
+
+
+def _int_array(x, who: str, key: str) -> np.ndarray:
+    a = np.asarray(x)
+    if a.dtype == object or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.bool_)
+                                 or np.issubdtype(a.dtype, np.floating)):
+        raise InvalidAction(f"{who} action {key!r} must be an integer, got dtype {a.dtype}")
+    if np.issubdtype(a.dtype, np.floating):
+        if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
+            raise InvalidAction(f"{who} action {key!r} must be a whole number, got {a.tolist()}")
+    return a.astype(np.int64).reshape(-1)
+
+
+def _float_array(x, who: str, key: str, shape) -> np.ndarray:
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidAction(f"{who} action {key!r} must be numeric") from None
+    if a.shape != tuple(shape):
+        raise InvalidAction(f"{who} action {key!r} has shape {a.shape[1:] if a.ndim else ()}, "
+                            f"expected {tuple(shape)[1:]}")
+    if not np.all(np.isfinite(a)):
+        raise InvalidAction(f"{who} action {key!r} contains NaN or infinite values")
+    return a
+
+
+def _default_episode_file(scenes: str, split: str):
+    try:
+        from plex_ma.episodes import default_episode_file
+    except ImportError:
+        return None
+    try:
+        p = default_episode_file(scenes, split)
+    except (KeyError, ValueError, FileNotFoundError):
+        return None
+    return p if p is not None and p.exists() else None

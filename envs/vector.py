@@ -1,0 +1,138 @@
+"""Batched environments for trainers: many worlds stepped per call, same rules.
+
+:class:`PlexVectorEnv` is :class:`~plex_ma.envs.rules.PlexWorlds` with autoreset: each
+world is at its own point of the planner/executor turn order, and one ``step`` call
+applies the planner's action in the worlds where the planner is to act and the
+executor's action in the others. :class:`PointNavVectorEnv` does the same for the flat
+agent. Neither holds any rule of its own; the AEC env ``plex_nav_v0`` is the same rules
+with one world, which a test checks step for step.
+
+Returned image arrays are views into the simulator's buffers: copy them if you keep them
+past the next ``step``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .rules import EXECUTOR, PLANNER, NavConfig, PlexConfig, PlexWorlds, PointNavWorlds, make_config
+from .spaces import (executor_action_space, executor_observation_space, planner_action_space,
+                     planner_observation_space, pointnav_observation_space)
+
+INFO_KEYS = ("success", "spl", "geodesic_distance", "distance_to_goal", "collisions", "steps")
+
+
+@dataclass
+class PlexVecStep:
+    """One batched step. ``turn`` says whose action each world needs next."""
+
+    turn: np.ndarray  # (N,) int8: PLANNER (0) or EXECUTOR (1)
+    planner_obs: dict  # arrays (N, ...); valid where turn == PLANNER
+    executor_obs: dict  # arrays (N, ...); the current images and sub-goal vector
+    rewards: np.ndarray  # (N, 2): [planner, executor] earned during this step
+    acted: np.ndarray  # (N,) int8: who acted in this step
+    executor_turn_end: np.ndarray  # (N,) bool: the executor's turn ended in this step
+    executor_stopped: np.ndarray  # (N,) bool: ... because it chose STOP
+    terminated: np.ndarray  # (N,) bool: the episode ended by a planner stop (then reset)
+    truncated: np.ndarray  # (N,) bool: the episode ended by max_steps (then reset)
+    episode_infos: list  # one info dict (with success, spl) per world whose episode ended
+    final_executor_obs: dict | None  # executor obs at the end of ended episodes (rows = ended)
+
+
+class PlexVectorEnv:
+    """N PLEX worlds with autoreset (see the module docstring)."""
+
+    def __init__(self, num_envs: int, seed: int | None = None, **config):
+        self.config: PlexConfig = make_config(PlexConfig, config)
+        self.num_envs = int(num_envs)
+        self.worlds = PlexWorlds(self.config, self.num_envs, seed)
+        self.planner_observation_space = planner_observation_space(self.config)
+        self.executor_observation_space = executor_observation_space(self.config)
+        self.planner_action_space = planner_action_space(self.config)
+        self.executor_action_space = executor_action_space(self.config)
+        self.executor_memory_restart = self.config.executor_memory_restart
+        self._zero_planner = {k: np.zeros((self.num_envs,) + s.shape, s.dtype)
+                              for k, s in self.planner_observation_space.spaces.items()}
+
+    def reset(self, seed: int | None = None) -> tuple[np.ndarray, dict, dict]:
+        """Reset every world. Returns (turn, planner_obs, executor_obs)."""
+        if seed is not None:
+            self.worlds.seed(seed)
+        self.worlds.reset_rows(np.arange(self.num_envs))
+        return self.worlds.turn.copy(), self._planner_obs(), self._executor_obs()
+
+    def _planner_obs(self) -> dict:
+        rows = np.flatnonzero(self.worlds.turn == PLANNER)
+        out = {k: np.zeros_like(v) for k, v in self._zero_planner.items()}
+        if len(rows):
+            for k, v in self.worlds.planner_obs(rows).items():
+                out[k][rows] = v
+        return out
+
+    def _executor_obs(self) -> dict:
+        w = self.worlds
+        return {"rgb": w.sim.rgb, "depth": w.sim.depth,
+                "subgoal": w.sim.polar_to(w.subgoal, None)}
+
+    def step(self, stop=None, subgoal=None, action=None, eli=None) -> PlexVecStep:
+        """Arrays of length N for both agents; each world reads its current agent's part."""
+        w = self.worlds
+        out = w.step(stop=stop, subgoal=subgoal, action=action, eli=eli)
+        ended = np.flatnonzero(out.terminated | out.truncated)
+        infos = [w.info(int(i)) for i in ended]
+        final = None
+        if len(ended):
+            final = {k: v.copy() for k, v in w.executor_obs(ended).items()}
+            w.reset_rows(ended)
+        return PlexVecStep(turn=w.turn.copy(), planner_obs=self._planner_obs(), executor_obs=self._executor_obs(),
+                           rewards=out.rewards, acted=out.acted, executor_turn_end=out.executor_turn_end,
+                           executor_stopped=out.executor_stopped, terminated=out.terminated,
+                           truncated=out.truncated, episode_infos=infos, final_executor_obs=final)
+
+    def info(self, i: int) -> dict:
+        return self.worlds.info(i)
+
+    def close(self) -> None:
+        pass
+
+
+class PointNavVectorEnv:
+    """N flat PointNav worlds with autoreset, for the baselines' trainer.
+
+    ``step(actions)`` returns ``(obs, rewards, terminated, truncated, infos)`` where
+    ``infos`` is a list of info dicts of the episodes that ended in this step, and
+    ``obs`` of ended worlds is already the next episode's first observation.
+    """
+
+    def __init__(self, num_envs: int, seed: int | None = None, **config):
+        self.config: NavConfig = make_config(NavConfig, config)
+        self.num_envs = int(num_envs)
+        self.worlds = PointNavWorlds(self.config, self.num_envs, seed)
+        self.observation_space = pointnav_observation_space(self.config)
+
+    def _obs(self) -> dict:
+        w = self.worlds
+        return {"rgb": w.sim.rgb, "depth": w.sim.depth, "pointgoal": w.goal_vector(np.arange(self.num_envs))}
+
+    def reset(self, seed: int | None = None) -> dict:
+        if seed is not None:
+            self.worlds.seed(seed)
+        self.worlds.reset_rows(np.arange(self.num_envs))
+        return self._obs()
+
+    def step(self, actions):
+        w = self.worlds
+        rew, term, trunc = w.step(actions)
+        ended = np.flatnonzero(term | trunc)
+        infos = [w.info(int(i)) for i in ended]
+        if len(ended):
+            w.reset_rows(ended)
+        return self._obs(), rew, term, trunc, infos
+
+    def close(self) -> None:
+        pass
+
+
+__all__ = ["PlexVectorEnv", "PlexVecStep", "PointNavVectorEnv", "PLANNER", "EXECUTOR"]
