@@ -245,13 +245,18 @@ def rasterize(scene: Scene, cell_size: float = CELL_SIZE, agent_radius: float = 
     outside = np.isin(labels, border[border > 0])
     # Doors that lead outside stay closed (a front door is a wall here): a door is open
     # only if every open cell next to it belongs to the inside.
+    # Each door is examined in its bounding box padded by one cell (the reach of its ring).
     lab_d, nd = ndimage.label(door, structure=np.ones((3, 3)))
-    for d in range(1, nd + 1):
-        m = lab_d == d
-        ring = ndimage.binary_dilation(m, structure=np.ones((3, 3))) & open_space
-        if np.any(outside & ring) or not np.any(ring):
-            door[m] = False
-            wall[m] = True
+    for d, sl in enumerate(ndimage.find_objects(lab_d), start=1):
+        if sl is None:
+            continue
+        win = (slice(max(sl[0].start - 1, 0), min(sl[0].stop + 1, H)),
+               slice(max(sl[1].start - 1, 0), min(sl[1].stop + 1, W)))
+        m = lab_d[win] == d
+        ring = ndimage.binary_dilation(m, structure=np.ones((3, 3))) & open_space[win]
+        if np.any(outside[win] & ring) or not np.any(ring):
+            door[win][m] = False
+            wall[win][m] = True
     room = np.full(shape, -1, np.int32)
     inside_labels = np.unique(labels[(labels > 0) & ~outside])
     remap = np.full(n + 1, -1, np.int32)
