@@ -66,7 +66,10 @@ class BatchedSim:
             raise ValueError(f"num_worlds must be a positive integer, got {num_worlds!r}")
         if not isinstance(resolution, (int, np.integer)) or not (8 <= resolution <= 1024):
             raise ValueError(f"resolution must be an integer in [8, 1024], got {resolution!r}")
-        pn = tuple(float(v) for v in pose_noise)
+        try:
+            pn = tuple(float(v) for v in pose_noise)
+        except (TypeError, ValueError):
+            raise ValueError(f"pose_noise must be two finite non-negative stds, got {pose_noise!r}") from None
         if len(pn) != 2 or not all(math.isfinite(v) and v >= 0 for v in pn):
             raise ValueError(f"pose_noise must be two finite non-negative stds, got {pose_noise!r}")
         self.bank = bank
