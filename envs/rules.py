@@ -302,6 +302,12 @@ class PlexWorlds(_Worlds):
         live = ~self.done
         pl = np.flatnonzero(live & (self.turn == PLANNER))
         ex = np.flatnonzero(live & (self.turn == EXECUTOR))
+        # A batched caller may move one agent only: worlds of the agent it gave no action
+        # for wait. With one world (the AEC env) a missing action is an error.
+        if n > 1 and stop is None and subgoal is None and action is not None:
+            pl = pl[:0]
+        if n > 1 and action is None and eli is None and stop is not None:
+            ex = ex[:0]
         if len(pl):
             if stop is None or subgoal is None:
                 raise InvalidAction("planner: it is the planner's turn; its action needs 'stop' and 'subgoal'")
@@ -453,9 +459,13 @@ def _int_array(x, who: str, key: str) -> np.ndarray:
 
 def _float_array(x, who: str, key: str, shape) -> np.ndarray:
     try:
-        a = np.asarray(x, dtype=np.float64)
+        a = np.asarray(x)
+        if np.iscomplexobj(a):
+            raise TypeError
+        a = np.asarray(a, dtype=np.float64)
     except (TypeError, ValueError):
-        raise InvalidAction(f"{who} action {key!r} must be numeric") from None
+        raise InvalidAction(f"{who} action {key!r} must be real numbers, got {type(x).__name__}"
+                            f"{' of dtype ' + str(x.dtype) if hasattr(x, 'dtype') else ''}") from None
     if a.shape != tuple(shape):
         raise InvalidAction(f"{who} action {key!r} has shape {a.shape[1:] if a.ndim else ()}, "
                             f"expected {tuple(shape)[1:]}")

@@ -77,7 +77,11 @@ class PlexVectorEnv:
                 "subgoal": w.sim.polar_to(w.subgoal, None)}
 
     def step(self, stop=None, subgoal=None, action=None, eli=None) -> PlexVecStep:
-        """Arrays of length N for both agents; each world reads its current agent's part."""
+        """Arrays of length N for both agents; each world reads its current agent's part.
+
+        Giving only one agent's part (e.g. ``step(stop=..., subgoal=...)``) moves only the
+        worlds where that agent is to act; the others wait. Trainers use this to resolve all
+        planner decisions first, so that every executor step has all N worlds acting."""
         w = self.worlds
         out = w.step(stop=stop, subgoal=subgoal, action=action, eli=eli)
         ended = np.flatnonzero(out.terminated | out.truncated)

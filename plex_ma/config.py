@@ -1,0 +1,150 @@
+"""Training configuration: one dataclass, every field documented, parsed by tyro.
+
+``--preset`` picks a set of defaults (``smoke``, ``cpu``, ``paper``); any flag given on the
+command line overrides the preset's value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Literal
+
+Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt"]
+Preset = Literal["smoke", "cpu", "paper"]
+
+
+@dataclass
+class TrainConfig:
+    """Train PLEX (planner + executor, independent PPO) or a flat PPO baseline."""
+
+    method: Method = "plex-gru"
+    """plex-gru / plex-smt (the paper's PLEX LSTM / SMT) or the flat baselines ppo-gru / ppo-smt"""
+    eli: bool = True
+    """pass the executor's ELI to the planner (--no-eli: the paper's ablation)"""
+    preset: Preset = "cpu"
+    """defaults to start from: smoke (< 2 min), cpu (best per CPU hour here), paper (256 px, paper settings)"""
+    total_steps: int = 2_000_000
+    """environment steps (agent actions) to train for"""
+    num_envs: int = 16
+    """worlds simulated in parallel"""
+    resolution: int = 64
+    """RGB-D image size in pixels (square)"""
+    seed: int = 0
+    """seeds the worlds, the networks and the sampling"""
+    run_dir: str = "runs/plex-gru"
+    """where metrics, TensorBoard logs and checkpoints go; an existing checkpoint here is resumed"""
+    scenes: str = "procgen"
+    """scene source: procgen, r2v, or a directory of floor plans"""
+    num_scenes: int | None = None
+    """training scenes (None: the source's default, 72 for procgen)"""
+    lr: float = 2.5e-4
+    """Adam learning rate (both agents)"""
+    rollout_steps: int = 64
+    """executor (or flat agent) steps per world between its PPO updates"""
+    n_pl: int = 128
+    """planner decisions per world per planner update (N_PL)"""
+    n_ex: int = 10
+    """executor actions per planner decision at most (N_EX)"""
+    gamma_ex: float = 0.9
+    """executor discount per executor step"""
+    gamma_pl: float = 0.95
+    """planner discount per planner decision"""
+    gamma_flat: float = 0.99
+    """flat baselines' discount per step"""
+    gae_lambda: float = 0.95
+    """GAE lambda"""
+    ppo_epochs: int = 4
+    """PPO epochs per update"""
+    num_minibatches: int = 2
+    """minibatches per epoch (recurrent minibatches split over worlds)"""
+    clip: float = 0.2
+    """PPO clip range"""
+    entropy_coef: float = 0.01
+    """entropy bonus weight"""
+    value_coef: float = 0.5
+    """value loss weight"""
+    max_grad_norm: float = 0.5
+    """gradient clipping norm"""
+    max_steps: int = 500
+    """agent actions per episode before truncation"""
+    rho_max: float = 4.0
+    """largest sub-goal distance (m)"""
+    smt_memory: int = 128
+    """memory entries kept by the scene-memory transformer (flat PPO-SMT spans the episode up to this cap)"""
+    checkpoint_interval: int = 50
+    """PPO updates (of the executor or flat agent) between checkpoints"""
+    keep_checkpoints: int = 3
+    """numbered checkpoints kept besides latest.pt"""
+    log_interval: int = 1
+    """updates between metric lines"""
+    record_interval: int = 0
+    """updates between rerun recordings of an episode into the run dir (0: never)"""
+    torch_threads: int = 0
+    """torch intra-op threads (0: torch's default)"""
+    progress: bool = True
+    """show a progress bar"""
+
+
+PRESETS: dict[str, dict] = {
+    # Finishes in well under two minutes on two cores and still writes a checkpoint.
+    "smoke": dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, n_pl=8, num_scenes=4,
+                  checkpoint_interval=5, ppo_epochs=2),
+    # What learns best per CPU hour on this machine (see README: chosen by measurement).
+    "cpu": dict(total_steps=2_000_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=32),
+    # The paper's settings: 256 px images, N_PL = 128, 30M steps.
+    "paper": dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128),
+}
+
+
+def preset_defaults(preset: str, method: str = "plex-gru") -> TrainConfig:
+    """A TrainConfig holding a preset's values (and a run dir named after the method)."""
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
+    cfg = dataclasses.replace(TrainConfig(), preset=preset, method=method, **PRESETS[preset])
+    cfg.run_dir = f"runs/{method}-{preset}"
+    return cfg
+
+
+def validate(cfg: TrainConfig) -> TrainConfig:
+    """Raise ValueError naming the first bad field."""
+    def need(cond, field, why):
+        if not cond:
+            raise ValueError(f"config --{field.replace('_', '-')}={getattr(cfg, field)!r}: {why}")
+
+    need(cfg.method in ("plex-gru", "plex-smt", "ppo-gru", "ppo-smt"), "method", "unknown method")
+    need(cfg.total_steps > 0, "total_steps", "must be positive")
+    need(cfg.num_envs >= 1, "num_envs", "must be >= 1")
+    need(cfg.resolution in range(32, 1025), "resolution", "must be in [32, 1024]")
+    need(cfg.lr > 0, "lr", "must be positive")
+    need(cfg.rollout_steps >= 2, "rollout_steps", "must be >= 2")
+    need(cfg.n_pl >= 1, "n_pl", "must be >= 1")
+    need(cfg.n_ex >= 1, "n_ex", "must be >= 1")
+    for g in ("gamma_ex", "gamma_pl", "gamma_flat", "gae_lambda"):
+        need(0.0 <= getattr(cfg, g) <= 1.0, g, "must be in [0, 1]")
+    need(cfg.ppo_epochs >= 1, "ppo_epochs", "must be >= 1")
+    need(1 <= cfg.num_minibatches <= cfg.num_envs, "num_minibatches", "must be in [1, num_envs]")
+    need(cfg.clip > 0, "clip", "must be positive")
+    need(cfg.max_grad_norm > 0, "max_grad_norm", "must be positive")
+    need(cfg.checkpoint_interval >= 1, "checkpoint_interval", "must be >= 1")
+    need(cfg.keep_checkpoints >= 1, "keep_checkpoints", "must be >= 1")
+    need(cfg.smt_memory >= 1, "smt_memory", "must be >= 1")
+    need(cfg.record_interval >= 0, "record_interval", "must be >= 0")
+    return cfg
+
+
+def parse(argv: list[str] | None = None) -> TrainConfig:
+    """Parse the command line: the preset first, then every flag on top of it."""
+    import argparse
+
+    import tyro
+
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--preset", default="cpu")
+    pre.add_argument("--method", default="plex-gru")
+    known, _ = pre.parse_known_args(argv)
+    try:
+        default = preset_defaults(known.preset, known.method)
+    except ValueError:
+        default = TrainConfig()  # let tyro report the bad choice with its usual message
+    return validate(tyro.cli(TrainConfig, default=default, args=argv))

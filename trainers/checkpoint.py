@@ -1,0 +1,96 @@
+"""Checkpoints: written atomically, loaded with ``weights_only=True``, never half-written.
+
+A run dir holds ``latest.pt`` plus numbered ``ckpt_000123.pt`` files. A save writes a
+temporary file in the same directory, fsyncs it and renames it into place, so a crash or
+a full disk leaves the previous checkpoint untouched. A load that finds ``latest.pt``
+corrupt or truncated says so and falls back to the newest numbered checkpoint that loads.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+import warnings
+from pathlib import Path
+
+import torch
+
+_NUM = re.compile(r"ckpt_(\d+)\.pt$")
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, corrupt, truncated or incompatible; the message says which."""
+
+
+def atomic_save(obj, path: str | os.PathLike) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def save_checkpoint(run_dir: str | os.PathLike, state: dict, number: int, keep: int = 3) -> Path:
+    """Write ``ckpt_<number>.pt`` and ``latest.pt`` atomically; prune old numbered files."""
+    run_dir = Path(run_dir)
+    numbered = run_dir / f"ckpt_{number:06d}.pt"
+    atomic_save(state, numbered)
+    atomic_save(state, run_dir / "latest.pt")
+    for old in sorted(_numbered(run_dir))[:-keep]:
+        old[1].unlink(missing_ok=True)
+    return numbered
+
+
+def _numbered(run_dir: Path) -> list[tuple[int, Path]]:
+    out = []
+    for p in run_dir.glob("ckpt_*.pt"):
+        m = _NUM.search(p.name)
+        if m:
+            out.append((int(m.group(1)), p))
+    return out
+
+
+def load_checkpoint(path: str | os.PathLike) -> dict:
+    """Load one checkpoint file safely (``weights_only=True``) or raise CheckpointError."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path}: does not exist")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises several types for truncated / corrupt / unsafe files
+        raise CheckpointError(f"checkpoint {path}: cannot be loaded (corrupt, truncated or not a "
+                              f"plex-ma checkpoint): {type(e).__name__}: {e}") from None
+    if not isinstance(state, dict) or "config" not in state or "format" not in state:
+        raise CheckpointError(f"checkpoint {path}: not a plex-ma checkpoint (missing 'config'/'format')")
+    return state
+
+
+def find_resumable(run_dir: str | os.PathLike) -> tuple[dict, Path] | None:
+    """The newest good checkpoint of a run dir (``latest.pt`` first), or None if it has none.
+
+    Corrupt files are reported with a warning and skipped."""
+    run_dir = Path(run_dir)
+    candidates = [run_dir / "latest.pt"] + [p for _, p in sorted(_numbered(run_dir), reverse=True)]
+    seen_any = False
+    for p in candidates:
+        if not p.exists():
+            continue
+        seen_any = True
+        try:
+            return load_checkpoint(p), p
+        except CheckpointError as e:
+            warnings.warn(f"{e}; trying an older checkpoint", stacklevel=2)
+    if seen_any:
+        raise CheckpointError(f"run dir {run_dir}: every checkpoint in it is corrupt; move them away to start over")
+    return None

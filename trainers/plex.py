@@ -1,0 +1,425 @@
+"""Independent PPO for PLEX (paper Algorithms 1 and 2) and flat PPO for the baselines.
+
+PLEX, per iteration:
+
+1. *Planner decisions.* Every world whose turn is the planner's gets a decision (stop, or a
+   sub-goal). A stop ends that world's episode and a new one starts, which needs another
+   decision, so this repeats until every world is in an executor turn.
+2. *One executor step* in all N worlds at once. The executor's memory restarts at the
+   first step of every turn (the env's ``executor_memory_restart`` hint).
+3. After ``rollout_steps`` executor steps: a PPO update of the executor on its own rewards
+   (gamma_EX per executor step). An executor turn ends at its STOP (terminal), at its
+   N_EX-th action (a truncation: bootstrap from V of the observation after it, with the
+   memory it had) or at the episode's end.
+4. Each planner decision is one transition whose reward is everything the planner earned
+   until its next decision (gamma_PL per decision). Once N_PL decisions per world have
+   completed, a PPO update of the planner.
+
+Stop-gradient: the ELI reaches the planner through the environment as a plain array, and
+the planner detaches it again inside its forward pass; the planner's optimiser holds only
+the planner's parameters, so the planner's update cannot change the executor.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from plex_ma.config import TrainConfig
+from plex_ma.envs.rules import PLANNER
+from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
+from plex_ma.networks import Executor, FlatPolicy, Planner
+
+from .checkpoint import find_resumable, save_checkpoint
+from .logger import MetricLogger
+from .ppo import PPOConfig, RolloutBuffer, compute_gae, ppo_update
+
+CHECKPOINT_FORMAT = 1
+
+
+def env_kwargs(cfg: TrainConfig, split: str = "train") -> dict:
+    kw = dict(resolution=cfg.resolution, max_steps=cfg.max_steps, scenes=cfg.scenes, split=split)
+    if split == "train":
+        kw["num_scenes"] = cfg.num_scenes
+    return kw
+
+
+def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
+    """The networks of a method: {'planner', 'executor'} for PLEX, {'policy'} for flat PPO."""
+    memory = cfg.method.split("-")[1]
+    if cfg.method.startswith("plex"):
+        return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max),
+                "executor": Executor(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory)}
+    return {"policy": FlatPolicy(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory)}
+
+
+@dataclass
+class EpisodeStats:
+    """Rolling window of finished episodes for logging."""
+
+    window: int = 100
+    success: deque = field(default_factory=lambda: deque(maxlen=100))
+    spl: deque = field(default_factory=lambda: deque(maxlen=100))
+    reward: deque = field(default_factory=lambda: deque(maxlen=100))
+
+    def add(self, info: dict, reward: float) -> None:
+        self.success.append(info["success"])
+        self.spl.append(info["spl"])
+        self.reward.append(reward)
+
+    def summary(self) -> dict:
+        if not self.success:
+            return {}
+        return {"metrics/success": float(np.mean(self.success)), "metrics/spl": float(np.mean(self.spl)),
+                "reward": float(np.mean(self.reward)), "metrics/episodes": len(self.success)}
+
+
+class Trainer:
+    """Shared run-dir handling: seeding, logging, checkpoints, resume, progress."""
+
+    def __init__(self, cfg: TrainConfig, log: bool = True):
+        self.cfg = cfg
+        if cfg.torch_threads:
+            torch.set_num_threads(cfg.torch_threads)
+        torch.manual_seed(cfg.seed)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.nets = build_policies(cfg)
+        self.opts = {k: torch.optim.Adam(m.parameters(), lr=cfg.lr, eps=1e-5) for k, m in self.nets.items()}
+        self.ppo = PPOConfig(clip_coef=cfg.clip, vf_coef=cfg.value_coef, ent_coef=cfg.entropy_coef,
+                             max_grad_norm=cfg.max_grad_norm, update_epochs=cfg.ppo_epochs,
+                             num_minibatches=cfg.num_minibatches)
+        self.step = 0  # environment steps (agent actions) so far
+        self.updates = {k: 0 for k in self.nets}
+        self.stats = EpisodeStats()
+        self.logger = MetricLogger(cfg.run_dir) if log else None
+        self.resumed_from = None
+        found = find_resumable(cfg.run_dir)
+        if found is not None:
+            state, path = found
+            self.load_state(state)
+            self.resumed_from = path
+            print(f"resuming from {path} at step {self.step:,}")
+
+    # ---------------------------------------------------------------- checkpoints
+    def state(self) -> dict:
+        return {"format": CHECKPOINT_FORMAT, "config": dataclasses.asdict(self.cfg), "step": self.step,
+                "updates": dict(self.updates),
+                "models": {k: m.state_dict() for k, m in self.nets.items()},
+                "optimizers": {k: o.state_dict() for k, o in self.opts.items()},
+                "torch_rng": torch.get_rng_state(), "sampler_rng": self.gen.get_state()}
+
+    def load_state(self, state: dict) -> None:
+        from .checkpoint import CheckpointError
+
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}")
+        saved = state["config"]
+        for key in ("method", "resolution", "eli", "smt_memory"):
+            if saved.get(key) != getattr(self.cfg, key):
+                raise CheckpointError(f"the run dir's checkpoint has {key}={saved.get(key)!r} but this run asks "
+                                      f"for {getattr(self.cfg, key)!r}; use another --run-dir")
+        try:
+            for k, m in self.nets.items():
+                m.load_state_dict(state["models"][k])
+            for k, o in self.opts.items():
+                o.load_state_dict(state["optimizers"][k])
+        except (KeyError, RuntimeError, ValueError) as e:
+            raise CheckpointError(f"checkpoint does not match the networks: {e}") from None
+        self.step = int(state["step"])
+        self.updates = {k: int(v) for k, v in state["updates"].items()}
+        torch.set_rng_state(state["torch_rng"])
+        self.gen.set_state(state["sampler_rng"])
+
+    def save(self) -> None:
+        n = sum(self.updates.values())
+        save_checkpoint(self.cfg.run_dir, self.state(), n, keep=self.cfg.keep_checkpoints)
+
+    # ---------------------------------------------------------------- logging
+    def log(self, metrics: dict) -> None:
+        if self.logger is not None:
+            self.logger.log(self.step, {**metrics, **self.stats.summary()})
+
+    def close(self) -> None:
+        if self.logger is not None:
+            self.logger.close()
+
+    def _progress(self):
+        if not self.cfg.progress:
+            return None
+        from tqdm import tqdm
+
+        return tqdm(total=self.cfg.total_steps, initial=min(self.step, self.cfg.total_steps), unit="step",
+                    dynamic_ncols=True, mininterval=1.0)
+
+    def _postfix(self, bar, sps: float) -> None:
+        if bar is None:
+            return
+        s = self.stats.summary()
+        bar.set_postfix({"sps": f"{sps:.0f}", "success": f"{s.get('metrics/success', 0):.2f}",
+                         "reward": f"{s.get('reward', 0):.2f}"}, refresh=False)
+
+
+class PlexTrainer(Trainer):
+    """Independent PPO for the planner and the executor (see the module docstring)."""
+
+    def __init__(self, cfg: TrainConfig, log: bool = True):
+        super().__init__(cfg, log)
+        self.env = PlexVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["executor"],
+                                 n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, **env_kwargs(cfg))
+        self.planner: Planner = self.nets["planner"]
+        self.executor: Executor = self.nets["executor"]
+        self.restart_memory = self.env.executor_memory_restart
+
+    def _planner_decisions(self) -> None:
+        """Decide for every world whose turn is the planner's, until none is left."""
+        n = self.cfg.num_envs
+        while True:
+            rows = np.flatnonzero(self.turn == PLANNER)
+            if len(rows) == 0:
+                return
+            obs = {k: v[rows] for k, v in self.pl_obs.items()}
+            out = self.planner.act(obs)
+            for k, i in enumerate(rows):
+                if self.pending[i] is not None:  # the previous decision's transition is complete
+                    self._close(i, next_value=float(out["value"][k]), done=False)
+                self.pending[i] = {"obs": {key: v[k] for key, v in obs.items()}, "stop": int(out["stop"][k]),
+                                   "subgoal": out["subgoal"][k].numpy(), "log_prob": float(out["log_prob"][k]),
+                                   "value": float(out["value"][k]), "reward": 0.0}
+            stop = np.zeros(n, np.int64)
+            sub = np.zeros((n, 2), np.float32)
+            stop[rows] = out["stop"].numpy()
+            sub[rows] = out["subgoal_env"].numpy()
+            res = self.env.step(stop=stop, subgoal=sub)
+            self._after_step(res)
+            self.starts[rows] = True  # a new sub-goal (or episode) begins an executor turn
+
+    def _close(self, i: int, next_value: float, done: bool) -> None:
+        p = self.pending[i]
+        p["done"] = done
+        self.chains[i].append(p)
+        self.next_value[i] = 0.0 if done else next_value
+        self.pending[i] = None
+
+    def _after_step(self, res) -> None:
+        r_pl = res.rewards[:, PLANNER]
+        self.ep_return += r_pl
+        for i in np.flatnonzero(self.has_pending()):
+            self.pending[i]["reward"] += float(r_pl[i])
+        ended = np.flatnonzero(res.terminated | res.truncated)
+        for k, i in enumerate(ended):
+            self.stats.add(res.episode_infos[k], float(self.ep_return[i]))
+            self.ep_return[i] = 0.0
+            if self.pending[i] is not None:
+                self._close(i, 0.0, done=True)
+        self.turn = res.turn
+        self.pl_obs = res.planner_obs
+        self.ex_obs = res.executor_obs
+
+    def has_pending(self) -> np.ndarray:
+        return np.array([p is not None for p in self.pending])
+
+    def _planner_ready(self) -> bool:
+        return sum(len(c) for c in self.chains) >= self.cfg.n_pl * self.cfg.num_envs
+
+    def _update_planner(self) -> dict:
+        """GAE along each world's chain of decisions, then PPO on the flattened batch."""
+        obs, stop, sub, logp, val, adv, ret = [], [], [], [], [], [], []
+        for i, chain in enumerate(self.chains):
+            if not chain:
+                continue
+            rewards = np.array([[t["reward"]] for t in chain], np.float32)
+            values = np.array([[t["value"]] for t in chain], np.float32)
+            dones = np.array([[t["done"]] for t in chain])
+            boot = np.zeros_like(values)
+            # the chain's last transition bootstraps from the value of the pending decision
+            boot[-1, 0] = self.pending[i]["value"] if (self.pending[i] is not None and not dones[-1, 0]) else 0.0
+            a, r = compute_gae(rewards, values, dones, np.zeros_like(dones), boot, self.cfg.gamma_pl,
+                               self.cfg.gae_lambda)
+            adv.append(a[:, 0])
+            ret.append(r[:, 0])
+            obs += [t["obs"] for t in chain]
+            stop += [t["stop"] for t in chain]
+            sub += [t["subgoal"] for t in chain]
+            logp += [t["log_prob"] for t in chain]
+            val += [t["value"] for t in chain]
+            self.chains[i] = []
+        m = len(stop)
+        buf = RolloutBuffer(1, m)
+        buf.add(0, obs={k: torch.as_tensor(np.stack([o[k] for o in obs])) for k in obs[0]},
+                actions={"stop": torch.tensor(stop), "subgoal": torch.as_tensor(np.stack(sub))},
+                log_probs=torch.tensor(logp), values=torch.tensor(val), rewards=torch.zeros(m),
+                dones=torch.zeros(m, dtype=torch.bool))
+        buf.data["advantages"] = torch.cat(adv)[None]
+        buf.data["returns"] = torch.cat(ret)[None]
+        stats = ppo_update(self.planner, buf, self.opts["planner"], self.ppo, self.gen)
+        self.updates["planner"] += 1
+        return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": m}
+
+    def _values(self, obs: dict, state: torch.Tensor) -> np.ndarray:
+        """V of executor observations with the given memory, continuing the sequence."""
+        with torch.no_grad():
+            _, value, _, _ = self.executor(obs, state, torch.zeros(len(state), dtype=torch.bool))
+        return value.numpy()
+
+    def train(self) -> dict:
+        cfg = self.cfg
+        n, T = cfg.num_envs, cfg.rollout_steps
+        self.turn, self.pl_obs, self.ex_obs = self.env.reset(seed=cfg.seed + self.step)
+        self.pending = [None] * n
+        self.chains = [[] for _ in range(n)]
+        self.next_value = np.zeros(n)
+        self.ep_return = np.zeros(n)
+        self.starts = np.ones(n, np.bool_)
+        state = self.executor.initial_state(n)
+        bar = self._progress()
+        last_log = {}
+        t_start, s_start = time.perf_counter(), self.step
+        timing = {"sim": 0.0, "inference": 0.0, "update": 0.0}
+        while self.step < cfg.total_steps:
+            buf = RolloutBuffer(T, n)
+            for t in range(T):
+                t0 = time.perf_counter()
+                self._planner_decisions()
+                t1 = time.perf_counter()
+                if t == 0:
+                    buf.initial_state = state.clone()
+                starts = self.starts.copy()
+                out, state = self.executor.act(self.ex_obs, state, starts)
+                action = out["action"].numpy()
+                t2 = time.perf_counter()
+                obs_t = {k: np.array(v) for k, v in self.ex_obs.items()}
+                res = self.env.step(action=action, eli=out["eli"].numpy())
+                t3 = time.perf_counter()
+                ended = res.terminated | res.truncated
+                trunc = res.executor_turn_end & ~res.executor_stopped
+                # A turn cut at N_EX (or by max_steps) bootstraps from V(observation after the
+                # last action) with the memory it had; for ended episodes that observation is
+                # the final one, as the world has already been reset.
+                boot = np.zeros(n, np.float32)
+                rows = np.flatnonzero(trunc & ~ended)
+                if len(rows):
+                    boot[rows] = self._values({k: v[rows] for k, v in res.executor_obs.items()}, state[rows])
+                rows = np.flatnonzero(trunc & ended)
+                if len(rows):
+                    sel = np.searchsorted(np.flatnonzero(ended), rows)
+                    boot[rows] = self._values({k: v[sel] for k, v in res.final_executor_obs.items()}, state[rows])
+                buf.add(t, obs=obs_t, actions=torch.as_tensor(action), log_probs=out["log_prob"],
+                        values=out["value"], rewards=torch.as_tensor(res.rewards[:, 1]),
+                        dones=torch.as_tensor(res.executor_stopped), truncated=torch.as_tensor(trunc),
+                        starts=torch.as_tensor(starts), bootstrap_values=torch.as_tensor(boot))
+                self.starts[:] = False
+                self.starts |= res.executor_turn_end & self.restart_memory
+                self.starts |= ended
+                self._after_step(res)
+                self.step += n
+                timing["inference"] += (t2 - t1) + (time.perf_counter() - t3)
+                timing["sim"] += (t1 - t0) + (t3 - t2)
+            # V(o_T) for worlds still inside a turn (their memory continues)
+            rows = np.flatnonzero(self.turn != PLANNER)
+            last = np.zeros(n, np.float32)
+            if len(rows):
+                last[rows] = self._values({k: v[rows] for k, v in self.ex_obs.items()}, state[rows])
+            t4 = time.perf_counter()
+            buf.compute_returns(cfg.gamma_ex, cfg.gae_lambda, last_values=torch.as_tensor(last))
+            metrics = {f"learner/executor_{k}": v for k, v in
+                       ppo_update(self.executor, buf, self.opts["executor"], self.ppo, self.gen).items()}
+            self.updates["executor"] += 1
+            if self._planner_ready():
+                metrics |= self._update_planner()
+            timing["update"] += time.perf_counter() - t4
+            elapsed = time.perf_counter() - t_start
+            sps = (self.step - s_start) / max(elapsed, 1e-9)
+            metrics["perf/fps"] = sps
+            tot = sum(timing.values())
+            for k, v in timing.items():
+                metrics[f"perf/share_{k}"] = v / max(tot, 1e-9)
+            if self.updates["executor"] % cfg.log_interval == 0:
+                self.log(metrics)
+                last_log = metrics
+            if self.updates["executor"] % cfg.checkpoint_interval == 0:
+                self.save()
+            if bar is not None:
+                bar.update(min(self.step, cfg.total_steps) - bar.n)
+                self._postfix(bar, sps)
+        self.save()
+        if bar is not None:
+            bar.close()
+        return {**last_log, **self.stats.summary()}
+
+
+class FlatTrainer(Trainer):
+    """Recurrent PPO for the flat baselines (PPO-GRU, PPO-SMT) on PointNav."""
+
+    def __init__(self, cfg: TrainConfig, log: bool = True):
+        super().__init__(cfg, log)
+        self.env = PointNavVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["policy"], **env_kwargs(cfg))
+        self.policy: FlatPolicy = self.nets["policy"]
+
+    def train(self) -> dict:
+        cfg = self.cfg
+        n, T = cfg.num_envs, cfg.rollout_steps
+        obs = self.env.reset(seed=cfg.seed + self.step)
+        state = self.policy.initial_state(n)
+        starts = np.ones(n, np.bool_)
+        ep_return = np.zeros(n)
+        bar = self._progress()
+        last_log = {}
+        t_start, s_start = time.perf_counter(), self.step
+        timing = {"sim": 0.0, "inference": 0.0, "update": 0.0}
+        while self.step < cfg.total_steps:
+            buf = RolloutBuffer(T, n)
+            buf.initial_state = state.clone()
+            for t in range(T):
+                t0 = time.perf_counter()
+                out, state = self.policy.act(obs, state, starts)
+                t1 = time.perf_counter()
+                obs_t = {k: np.array(v) for k, v in obs.items()}
+                obs, rew, term, trunc, infos = self.env.step(out["action"].numpy())
+                t2 = time.perf_counter()
+                ended = term | trunc
+                # A time-limit truncation is treated as terminal (the final observation is
+                # gone after the autoreset); at 500 steps the discounted tail is negligible.
+                buf.add(t, obs=obs_t, actions=out["action"], log_probs=out["log_prob"], values=out["value"],
+                        rewards=torch.as_tensor(rew), dones=torch.as_tensor(ended), starts=torch.as_tensor(starts))
+                ep_return += rew
+                for k, i in enumerate(np.flatnonzero(ended)):
+                    self.stats.add(infos[k], float(ep_return[i]))
+                    ep_return[i] = 0.0
+                starts = ended.copy()
+                self.step += n
+                timing["inference"] += t1 - t0
+                timing["sim"] += t2 - t1
+            t3 = time.perf_counter()
+            with torch.no_grad():
+                _, last, _, _ = self.policy(obs, state, torch.as_tensor(starts))
+            buf.compute_returns(cfg.gamma_flat, cfg.gae_lambda, last_values=last)
+            metrics = {f"learner/{k}": v for k, v in
+                       ppo_update(self.policy, buf, self.opts["policy"], self.ppo, self.gen).items()}
+            self.updates["policy"] += 1
+            timing["update"] += time.perf_counter() - t3
+            sps = (self.step - s_start) / max(time.perf_counter() - t_start, 1e-9)
+            metrics["perf/fps"] = sps
+            tot = sum(timing.values())
+            for k, v in timing.items():
+                metrics[f"perf/share_{k}"] = v / max(tot, 1e-9)
+            if self.updates["policy"] % cfg.log_interval == 0:
+                self.log(metrics)
+                last_log = metrics
+            if self.updates["policy"] % cfg.checkpoint_interval == 0:
+                self.save()
+            if bar is not None:
+                bar.update(min(self.step, cfg.total_steps) - bar.n)
+                self._postfix(bar, sps)
+        self.save()
+        if bar is not None:
+            bar.close()
+        return {**last_log, **self.stats.summary()}
+
+
+def make_trainer(cfg: TrainConfig, log: bool = True) -> Trainer:
+    return (PlexTrainer if cfg.method.startswith("plex") else FlatTrainer)(cfg, log)
