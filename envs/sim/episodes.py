@@ -168,6 +168,7 @@ def save_episodes(episodes: list[Episode], path: str | os.PathLike) -> None:
     try:
         with os.fdopen(fd, "wb") as f, gzip.GzipFile(fileobj=f, mode="wb", mtime=0) as gz:
             gz.write(data.encode())
+        os.chmod(tmp, 0o644)  # mkstemp makes the file private; an episode file is data to share
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
