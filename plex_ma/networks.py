@@ -1,0 +1,411 @@
+"""Policy networks: the PLEX planner and executor (paper 4.2, SPEC 5) and the flat baselines.
+
+Observations are dicts of tensors (numpy arrays are accepted and converted) with a
+leading batch dimension:
+
+- planner:  ``ego_map`` (B, C, 32, 32) float in [0, 1]; ``goal`` (B, 2) = (distance m,
+  direction rad); ``eli`` (B, 128) float.
+- executor: ``rgb`` (B, H, W, 3) uint8; ``depth`` (B, H, W, 1) float in [0, 1];
+  ``subgoal`` (B, 2) = (distance m, direction rad).
+- flat:     ``rgb``, ``depth`` as the executor, ``pointgoal`` (B, 2).
+
+Every (distance, direction) vector is fed to the networks as (distance, cos, sin) so that
+directions just either side of +-pi look alike (see ``encode_polar``).
+
+Recurrent policies (executor, flat) keep a memory *state*: one tensor whose first
+dimension is the batch (``initial_state(batch)``), so a rollout buffer can store and index
+it without knowing which memory it is. A ``starts`` mask (B,) says where a new sequence
+begins (new sub-goal or new episode); the memory is cleared *before* that step is
+processed. Initialisation follows CleanRL: orthogonal weights, zero biases, gain sqrt(2)
+for hidden layers, 0.01 for policy heads, 1 for value heads.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+from torch.distributions import Categorical, Normal
+
+ELI_DIM = 128
+NUM_ACTIONS = 4  # STOP, MOVE_FORWARD, TURN_LEFT, TURN_RIGHT
+# float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
+# `|theta| <= pi` range check; clamp to the float32 just below pi instead.
+PI32 = float(np.nextafter(np.float32(np.pi), np.float32(0)))
+
+
+def layer_init(layer: nn.Module, std: float = math.sqrt(2), bias: float = 0.0) -> nn.Module:
+    """Orthogonal weight with gain ``std`` and constant bias (CleanRL's init)."""
+    nn.init.orthogonal_(layer.weight, std)
+    nn.init.constant_(layer.bias, bias)
+    return layer
+
+
+def encode_polar(vec: torch.Tensor) -> torch.Tensor:
+    """(..., 2) = (distance, direction rad) -> (..., 3) = (distance, cos, sin)."""
+    return torch.stack([vec[..., 0], torch.cos(vec[..., 1]), torch.sin(vec[..., 1])], dim=-1)
+
+
+def _as_tensor(x, device: torch.device, dtype: torch.dtype | None = None) -> torch.Tensor:
+    if isinstance(x, np.ndarray):
+        x = torch.from_numpy(x)
+    return torch.as_tensor(x, device=device, dtype=dtype)
+
+
+def _conv_out_dim(convs: nn.Module, shape: tuple[int, ...]) -> int:
+    with torch.no_grad():
+        return convs(torch.zeros(1, *shape)).flatten(1).shape[1]
+
+
+# --------------------------------------------------------------------------- planner
+
+
+class Planner(nn.Module):
+    """Planner: ego map CNN + ELI -> 512 -> (+ goal) -> stop logits, Gaussian sub-goal, value.
+
+    Sub-goal action: the policy samples an *unbounded* raw (rho, theta) from two Gaussians
+    with state-dependent means and state-independent learnable log-stds. The raw sample is
+    what the rollout buffer stores and what ``log_prob`` is computed on; only the copy sent
+    to the environment is mapped into the action box by ``subgoal_to_env``: rho is clipped
+    to [0, rho_max] and theta is wrapped to [-pi, pi] (wrapping, unlike clipping, keeps the
+    direction the sample points to).
+    """
+
+    def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
+                 rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
+                 map_size: int = 32, init_log_std: float = 0.0):
+        super().__init__()
+        self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
+        self.convs = nn.Sequential(
+            layer_init(nn.Conv2d(ego_channels, channels[0], 4, stride=2)), nn.ReLU(),
+            layer_init(nn.Conv2d(channels[0], channels[1], 3, stride=1)), nn.ReLU(),
+            nn.Flatten(),
+        )
+        n_flat = _conv_out_dim(self.convs, (ego_channels, map_size, map_size))
+        self.fc = nn.Sequential(layer_init(nn.Linear(n_flat + eli_dim, hidden)), nn.ReLU())
+        feat = hidden + 3  # + encoded goal (distance, cos, sin)
+        self.stop_logits = layer_init(nn.Linear(feat, 2), std=0.01)
+        self.subgoal_mean = layer_init(nn.Linear(feat, 2), std=0.01)
+        # Start with sub-goals half-way out (rho ~ rho_max / 2) rather than at the agent.
+        with torch.no_grad():
+            self.subgoal_mean.bias[0] = rho_max / 2
+        self.subgoal_log_std = nn.Parameter(torch.full((2,), float(init_log_std)))
+        self.critic = layer_init(nn.Linear(feat, 1), std=1.0)
+
+    def features(self, obs: dict) -> torch.Tensor:
+        dev = self.stop_logits.weight.device
+        ego = _as_tensor(obs["ego_map"], dev, torch.float32)
+        goal = _as_tensor(obs["goal"], dev, torch.float32)
+        if self.use_eli:
+            # Stop-gradient (paper 3, SPEC 5): the planner's loss must never reach the
+            # executor's parameters, so the ELI always enters the planner detached.
+            eli = _as_tensor(obs["eli"], dev, torch.float32).detach()
+        else:
+            eli = torch.zeros(ego.shape[0], self.eli_dim, device=dev)
+        h = self.fc(torch.cat([self.convs(ego), eli], dim=1))
+        return torch.cat([h, encode_polar(goal)], dim=1)
+
+    def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
+        """(stop distribution, sub-goal distribution over raw (rho, theta), value (B,))."""
+        h = self.features(obs)
+        stop = Categorical(logits=self.stop_logits(h))
+        mean = self.subgoal_mean(h)
+        subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
+        return stop, subgoal, self.critic(h).squeeze(-1)
+
+    @staticmethod
+    def _log_prob_entropy(stop_d: Categorical, sub_d: Normal, stop: torch.Tensor, subgoal: torch.Tensor):
+        # The sub-goal only matters when the planner continues (stop == 0), so its
+        # log-prob only counts then. The entropy is H(stop) + H(subgoal), not the joint's
+        # exact H(stop) + p(continue) H(subgoal): the latter would let the entropy bonus
+        # push p(continue) up and bias the agent against stopping.
+        cont = (stop == 0).float()
+        log_prob = stop_d.log_prob(stop) + cont * sub_d.log_prob(subgoal).sum(-1)
+        entropy = stop_d.entropy() + sub_d.entropy().sum(-1)
+        return log_prob, entropy
+
+    def subgoal_to_env(self, subgoal: torch.Tensor) -> torch.Tensor:
+        """Map raw samples into the action box: rho clipped to [0, rho_max], theta wrapped."""
+        rho = subgoal[..., 0].clamp(0.0, self.rho_max)
+        theta = torch.atan2(torch.sin(subgoal[..., 1]), torch.cos(subgoal[..., 1])).clamp(-PI32, PI32)
+        return torch.stack([rho, theta], dim=-1)
+
+    @torch.no_grad()
+    def act(self, obs: dict, deterministic: bool = False) -> dict:
+        """One decision per env: stop (B,) long, subgoal (B, 2) raw sample (store this),
+        subgoal_env (B, 2) mapped into the action box (send this), log_prob (B,), value (B,)."""
+        stop_d, sub_d, value = self(obs)
+        if deterministic:
+            stop, subgoal = stop_d.probs.argmax(-1), sub_d.mean
+        else:
+            stop, subgoal = stop_d.sample(), sub_d.sample()
+        log_prob, _ = self._log_prob_entropy(stop_d, sub_d, stop, subgoal)
+        return {"stop": stop, "subgoal": subgoal, "subgoal_env": self.subgoal_to_env(subgoal),
+                "log_prob": log_prob, "value": value}
+
+    def evaluate_actions(self, obs: dict, stop: torch.Tensor, subgoal: torch.Tensor):
+        """(log_prob, entropy, value), each (B,), for stored actions (raw sub-goal samples)."""
+        stop_d, sub_d, value = self(obs)
+        log_prob, entropy = self._log_prob_entropy(stop_d, sub_d, stop.long(), subgoal)
+        return log_prob, entropy, value
+
+    def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
+        c, s = self.convs[0].in_channels, 32
+        return {"ego_map": torch.rand(batch, c, s, s, generator=generator),
+                "goal": torch.rand(batch, 2, generator=generator) * torch.tensor([10.0, 2 * math.pi]) - torch.tensor([0.0, math.pi]),
+                "eli": torch.randn(batch, self.eli_dim, generator=generator)}
+
+
+# --------------------------------------------------------------------------- memories
+
+
+class GRUMemory(nn.Module):
+    """GRU memory. State: (B, hidden)."""
+
+    def __init__(self, in_dim: int, hidden: int = 512):
+        super().__init__()
+        self.hidden = hidden
+        self.out_dim = hidden
+        self.gru = nn.GRU(in_dim, hidden)
+        for name, p in self.gru.named_parameters():
+            if "weight" in name:
+                nn.init.orthogonal_(p, 1.0)
+            else:
+                nn.init.constant_(p, 0.0)
+
+    def initial_state(self, batch: int, device=None) -> torch.Tensor:
+        return torch.zeros(batch, self.hidden, device=device)
+
+    def step(self, x: torch.Tensor, state: torch.Tensor, starts: torch.Tensor):
+        h = state * (~starts).unsqueeze(-1)
+        out, h = self.gru(x.unsqueeze(0), h.unsqueeze(0))
+        return out[0], h[0]
+
+    def sequence(self, x: torch.Tensor, state: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
+        """x (T, B, D), starts (T, B) -> (T, B, hidden)."""
+        # Cut time where *any* env starts a new sequence; between cuts no memory resets,
+        # so nn.GRU can run each chunk in one call (habitat-lab does the same).
+        cuts = (torch.nonzero(starts[1:].any(dim=1)).flatten() + 1).tolist()
+        bounds = [0] + cuts + [x.shape[0]]
+        h, outs = state, []
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            h = h * (~starts[a]).unsqueeze(-1)
+            out, h = self.gru(x[a:b], h.unsqueeze(0))
+            h = h[0]
+            outs.append(out)
+        return torch.cat(outs, dim=0)
+
+
+class MultiHeadAttention(nn.Module):
+    """Plain multi-head attention with a boolean mask (True = may attend).
+
+    Written out with matmuls (not scaled_dot_product_attention) so that FLOP counting
+    sees it and one step and a whole sequence use the same arithmetic.
+    """
+
+    def __init__(self, dim: int, heads: int):
+        super().__init__()
+        assert dim % heads == 0, "dim must be divisible by heads"
+        self.heads, self.head_dim = heads, dim // heads
+        self.q, self.k, self.v, self.o = (layer_init(nn.Linear(dim, dim), std=1.0) for _ in range(4))
+
+    def forward(self, x: torch.Tensor, memory: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """x (B, Tq, D) attends over memory (B, S, D) where mask (B, Tq, S)."""
+        B, Tq, D = x.shape
+        S = memory.shape[1]
+        q = self.q(x).view(B, Tq, self.heads, self.head_dim).transpose(1, 2)
+        k = self.k(memory).view(B, S, self.heads, self.head_dim).transpose(1, 2)
+        v = self.v(memory).view(B, S, self.heads, self.head_dim).transpose(1, 2)
+        scores = (q @ k.transpose(-1, -2)) / math.sqrt(self.head_dim)
+        attn = scores.masked_fill(~mask.unsqueeze(1), float("-inf")).softmax(dim=-1)
+        return self.o((attn @ v).transpose(1, 2).reshape(B, Tq, D))
+
+
+class SMTMemory(nn.Module):
+    """Scene-memory transformer (after Fang et al. 2019, without furthest-point sampling).
+
+    Each step's input is embedded into a memory token; the current token attends with
+    ``heads`` heads over the memory of the last ``capacity`` tokens of its sequence
+    (itself included), followed by a feed-forward block (pre-norm residuals). One
+    attention block; Fang et al.'s separate memory encoder is left out.
+
+    State: (B, capacity, dim + 1): the stored tokens, oldest first and the newest in the
+    last slot, plus a last channel that is 1 for a filled slot and 0 for an empty one.
+    """
+
+    def __init__(self, in_dim: int, dim: int = 128, heads: int = 8, capacity: int = 128):
+        super().__init__()
+        self.dim, self.capacity, self.out_dim = dim, capacity, dim
+        self.embed = layer_init(nn.Linear(in_dim, dim), std=1.0)
+        self.norm1, self.norm2, self.norm_out = nn.LayerNorm(dim), nn.LayerNorm(dim), nn.LayerNorm(dim)
+        self.attn = MultiHeadAttention(dim, heads)
+        self.ff = nn.Sequential(layer_init(nn.Linear(dim, 2 * dim)), nn.ReLU(), layer_init(nn.Linear(2 * dim, dim), std=1.0))
+
+    def initial_state(self, batch: int, device=None) -> torch.Tensor:
+        return torch.zeros(batch, self.capacity, self.dim + 1, device=device)
+
+    def _block(self, x: torch.Tensor, memory: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        kv = self.norm1(memory)
+        h = x + self.attn(self.norm1(x), kv, mask)
+        h = h + self.ff(self.norm2(h))
+        return self.norm_out(h)
+
+    def step(self, x: torch.Tensor, state: torch.Tensor, starts: torch.Tensor):
+        tok = self.embed(x)
+        mem = state * (~starts).view(-1, 1, 1)  # a start empties every slot
+        new = torch.cat([tok, torch.ones_like(tok[:, :1])], dim=-1)
+        mem = torch.cat([mem[:, 1:], new.unsqueeze(1)], dim=1)  # drop the oldest, append
+        used = self._filled_tail(mem)  # attend over the filled slots only (cheaper, same result)
+        valid = used[..., self.dim] > 0.5
+        out = self._block(tok.unsqueeze(1), used[..., : self.dim], valid.unsqueeze(1))
+        return out[:, 0], mem
+
+    def _filled_tail(self, mem: torch.Tensor) -> torch.Tensor:
+        """The last slots of ``mem`` that hold a token in at least one env. Filled slots are
+        always a suffix, and empty ones are masked out anyway."""
+        n = int((mem[..., self.dim] > 0.5).sum(dim=1).max())
+        return mem[:, mem.shape[1] - n:]
+
+    def sequence(self, x: torch.Tensor, state: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
+        """x (T, B, D), starts (T, B) -> (T, B, dim), all steps in one attention call."""
+        T, M = x.shape[0], self.capacity
+        tok = self.embed(x).transpose(0, 1)  # (B, T, dim)
+        old = self._filled_tail(state)  # stored memory slots M - K .. M - 1
+        K = old.shape[1]
+        keys = torch.cat([old[..., : self.dim], tok], dim=1)  # (B, K + T, dim)
+        # Block-causal, sliding-window mask reproducing ``step``: step t sees step s of
+        # this call if both are in the same sequence (no start in (s, t]), s <= t and
+        # t - s < M; it sees slot j of the stored memory (which holds step j - M) only if
+        # no start happened in [0, t], the slot is filled and t - (j - M) < M, i.e. j > t.
+        seg = starts.long().cumsum(0).transpose(0, 1)  # (B, T) sequence id; 0 = continues state
+        t = torch.arange(T, device=x.device)
+        j = torch.arange(M - K, M, device=x.device)
+        causal = (t[None, :] <= t[:, None]) & (t[:, None] - t[None, :] < M)  # (T, T) [query, key]
+        new_ok = (seg[:, :, None] == seg[:, None, :]) & causal
+        filled = old[..., self.dim] > 0.5  # (B, K)
+        mem_ok = (seg == 0)[:, :, None] & filled[:, None, :] & (j[None, :] > t[:, None])
+        out = self._block(tok, keys, torch.cat([mem_ok, new_ok], dim=-1))
+        return out.transpose(0, 1)
+
+
+# --------------------------------------------------------------------------- executor
+
+
+class RGBDEncoder(nn.Module):
+    """conv 8x8/4, 4x4/2, 3x3/1 (ReLU) over RGB-D, then FC + ReLU (habitat's SimpleCNN shape)."""
+
+    def __init__(self, resolution: int, out_dim: int, channels: tuple[int, int, int] = (32, 64, 32)):
+        super().__init__()
+        self.resolution = resolution
+        self.convs = nn.Sequential(
+            layer_init(nn.Conv2d(4, channels[0], 8, stride=4)), nn.ReLU(),
+            layer_init(nn.Conv2d(channels[0], channels[1], 4, stride=2)), nn.ReLU(),
+            layer_init(nn.Conv2d(channels[1], channels[2], 3, stride=1)), nn.ReLU(),
+            nn.Flatten(),
+        )
+        n_flat = _conv_out_dim(self.convs, (4, resolution, resolution))
+        self.fc = nn.Sequential(layer_init(nn.Linear(n_flat, out_dim)), nn.ReLU())
+
+    def forward(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """rgb (N, H, W, 3) uint8, depth (N, H, W, 1) float -> (N, out_dim)."""
+        x = torch.cat([rgb.float() / 255.0, depth.float()], dim=-1).permute(0, 3, 1, 2)
+        return self.fc(self.convs(x))
+
+
+class Executor(nn.Module):
+    """Executor: RGB-D CNN -> FC (+ goal) -> GRU or SMT memory -> 128-d output, which is
+    both the action embedding and the ELI -> 4-way action logits and a value.
+
+    ``memory="gru"``: FC 512, GRU hidden 512, then a linear layer to the 128-d output.
+    ``memory="smt"``: FC 128, SMT with ``smt_heads`` heads over up to ``smt_memory``
+    tokens, then a linear layer to the 128-d output. The output goes through tanh so the
+    ELI sent to the planner stays in [-1, 1].
+    """
+
+    goal_key = "subgoal"
+
+    def __init__(self, memory: str = "gru", resolution: int = 128, eli_dim: int = ELI_DIM,
+                 smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512):
+        super().__init__()
+        if memory not in ("gru", "smt"):
+            raise ValueError(f"memory must be 'gru' or 'smt', got {memory!r}")
+        self.memory_kind, self.resolution, self.eli_dim = memory, resolution, eli_dim
+        emb = 512 if memory == "gru" else 128
+        self.encoder = RGBDEncoder(resolution, emb)
+        if memory == "gru":
+            self.memory = GRUMemory(emb + 3, gru_hidden)
+        else:
+            self.memory = SMTMemory(emb + 3, 128, smt_heads, smt_memory)
+        self.eli_head = layer_init(nn.Linear(self.memory.out_dim, eli_dim))
+        self.actor = layer_init(nn.Linear(eli_dim, NUM_ACTIONS), std=0.01)
+        self.critic = layer_init(nn.Linear(eli_dim, 1), std=1.0)
+
+    @property
+    def device(self) -> torch.device:
+        return self.actor.weight.device
+
+    def initial_state(self, batch: int) -> torch.Tensor:
+        return self.memory.initial_state(batch, self.device)
+
+    def _inputs(self, obs: dict) -> torch.Tensor:
+        """Any leading dims (...) -> (..., emb + 3)."""
+        dev = self.device
+        rgb = _as_tensor(obs["rgb"], dev)
+        depth = _as_tensor(obs["depth"], dev, torch.float32)
+        goal = _as_tensor(obs[self.goal_key], dev, torch.float32)
+        lead = rgb.shape[:-3]
+        feat = self.encoder(rgb.reshape(-1, *rgb.shape[-3:]), depth.reshape(-1, *depth.shape[-3:]))
+        return torch.cat([feat.view(*lead, -1), encode_polar(goal)], dim=-1)
+
+    def _heads(self, out: torch.Tensor):
+        eli = torch.tanh(self.eli_head(out))
+        return self.actor(eli), self.critic(eli).squeeze(-1), eli
+
+    def forward(self, obs: dict, state: torch.Tensor, starts):
+        """One step for a batch: (logits (B, 4), value (B,), eli (B, 128), new state)."""
+        starts = _as_tensor(starts, self.device, torch.bool)
+        out, state = self.memory.step(self._inputs(obs), state, starts)
+        logits, value, eli = self._heads(out)
+        return logits, value, eli, state
+
+    @torch.no_grad()
+    def act(self, obs: dict, state: torch.Tensor, starts, deterministic: bool = False):
+        """Rollout step: (dict(action, log_prob, value, eli), new state)."""
+        logits, value, eli, state = self(obs, state, starts)
+        dist = Categorical(logits=logits)
+        action = logits.argmax(-1) if deterministic else dist.sample()
+        return {"action": action, "log_prob": dist.log_prob(action), "value": value, "eli": eli}, state
+
+    def evaluate_sequences(self, obs_seq: dict, actions: torch.Tensor, starts: torch.Tensor,
+                           initial_state: torch.Tensor):
+        """Training pass over (T, B) sequences whose memory is ``initial_state`` before step 0
+        and is cleared where ``starts``: (log_prob, entropy, value), each (T, B)."""
+        starts = _as_tensor(starts, self.device, torch.bool)
+        out = self.memory.sequence(self._inputs(obs_seq), initial_state, starts)
+        logits, value, _ = self._heads(out)
+        dist = Categorical(logits=logits)
+        return dist.log_prob(_as_tensor(actions, self.device).long()), dist.entropy(), value
+
+    def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
+        r = self.resolution
+        return {"rgb": torch.randint(0, 256, (batch, r, r, 3), dtype=torch.uint8, generator=generator),
+                "depth": torch.rand(batch, r, r, 1, generator=generator),
+                self.goal_key: torch.rand(batch, 2, generator=generator) * torch.tensor([5.0, 2 * math.pi]) - torch.tensor([0.0, math.pi])}
+
+
+class FlatPolicy(Executor):
+    """Flat PointNav baselines: PPO-GRU (Savva et al. 2019) and PPO-SMT (Fang et al. 2019).
+
+    The executor's network with the end goal (``pointgoal``) in place of the sub-goal; the
+    trainer passes ``starts`` only at episode starts, so the memory spans the episode. The
+    SMT memory keeps the last 256 steps of the episode by default (episodes run up to 500
+    steps). Unlike Savva et al., the heads sit on the same 128-d output layer as the
+    executor's, so the baselines and PLEX differ only in the hierarchy.
+    """
+
+    goal_key = "pointgoal"
+
+    def __init__(self, memory: str = "gru", resolution: int = 128, smt_memory: int = 256, **kw):
+        super().__init__(memory=memory, resolution=resolution, smt_memory=smt_memory, **kw)

@@ -1,0 +1,202 @@
+"""Networks: recurrent training pass == rollout steps, stop-gradient, shapes, init, FLOPs."""
+
+import math
+
+import pytest
+import torch
+
+from plex_ma.networks import ELI_DIM, Executor, FlatPolicy, Planner
+from plex_ma.trainers.ppo import RolloutBuffer
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    # Tests run two workers on two cores; more torch threads only fight over them.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def planner():
+    torch.manual_seed(0)
+    return Planner()
+
+
+def _stack(obs_list):
+    return {k: torch.stack([o[k] for o in obs_list]) for k in obs_list[0]}
+
+
+def _rollout(policy, buf, state, starts, gen):
+    """Fill ``buf`` by stepping ``policy.act`` with the given starts (T, B); return the new state."""
+    buf.initial_state = state.clone()
+    for t in range(buf.num_steps):
+        obs = policy.example_obs(buf.num_envs, gen)
+        out, state = policy.act(obs, state, starts[t])
+        buf.add(t, obs=obs, actions=out["action"], log_probs=out["log_prob"], values=out["value"],
+                rewards=torch.zeros(buf.num_envs), dones=torch.zeros(buf.num_envs), starts=starts[t])
+    buf.compute_returns(0.9, 0.95, last_values=torch.zeros(buf.num_envs))
+    return state
+
+
+@pytest.mark.parametrize("make", [
+    lambda: Executor("gru", 64),
+    lambda: Executor("smt", 64, smt_memory=4),  # tiny memory: the sliding window and the stored memory matter
+    lambda: FlatPolicy("smt", 64, smt_memory=5),
+], ids=["executor-gru", "executor-smt", "flat-smt"])
+def test_evaluate_sequences_matches_step_by_step(make):
+    torch.manual_seed(0)
+    gen = torch.Generator().manual_seed(1)
+    policy = make()
+    T, B = 12, 4
+    starts = torch.rand(2 * T, B, generator=gen) < 0.2
+    starts[0] = True
+    starts[:, 0] = False  # env 0: one sequence across both rollouts, longer than the SMT memory
+    starts[0, 0] = True
+    starts[T, 1] = True  # env 1: starts right at the second rollout's first step
+    state = policy.initial_state(B)
+    for k in range(2):  # the second rollout begins with memory carried over from the first
+        buf = RolloutBuffer(T, B)
+        state = _rollout(policy, buf, state, starts[k * T:(k + 1) * T], gen)
+        for mb_idx, mb in enumerate(buf.minibatches(2, torch.Generator().manual_seed(k))):
+            with torch.no_grad():
+                log_probs, entropy, values = policy.evaluate_sequences(mb.obs, mb.actions, mb.starts, mb.initial_state)
+            assert log_probs.shape == values.shape == entropy.shape == (T, mb.starts.shape[1])
+            torch.testing.assert_close(log_probs, mb.log_probs, atol=1e-5, rtol=0)
+            torch.testing.assert_close(values, mb.values, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("memory", ["gru", "smt"])
+def test_memory_is_used_and_reset(memory):
+    torch.manual_seed(0)
+    ex = Executor(memory, 64, gru_hidden=64)
+    gen = torch.Generator().manual_seed(0)
+    seq = _stack([ex.example_obs(2, gen) for _ in range(3)])
+    actions = torch.zeros(3, 2, dtype=torch.long)
+    state = ex.initial_state(2)
+    with torch.no_grad():
+        for _ in range(3):
+            _, state = ex.act(ex.example_obs(2, gen), state, torch.zeros(2, dtype=torch.bool))
+        no_start = torch.zeros(3, 2, dtype=torch.bool)
+        _, _, v_mem = ex.evaluate_sequences(seq, actions, no_start, state)
+        _, _, v_fresh = ex.evaluate_sequences(seq, actions, no_start, ex.initial_state(2))
+        _, _, v_reset = ex.evaluate_sequences(seq, actions, no_start.index_fill(0, torch.tensor([0]), True), state)
+    assert not torch.allclose(v_mem, v_fresh)  # the stored memory changes the outputs
+    torch.testing.assert_close(v_reset, v_fresh, atol=1e-6, rtol=0)  # a start forgets it
+
+
+def test_planner_eli_is_detached_from_executor():
+    torch.manual_seed(0)
+    ex, pl = Executor("gru", 64, gru_hidden=64), Planner(channels=(8, 8), hidden=64)
+    _, _, eli, _ = ex(ex.example_obs(3), ex.initial_state(3), torch.ones(3, dtype=torch.bool))
+    assert eli.requires_grad and eli.shape == (3, ELI_DIM)
+    eli.retain_grad()
+    obs = pl.example_obs(3)
+    obs["eli"] = eli
+    out = pl.act(obs)
+    before = {k: v.clone() for k, v in ex.state_dict().items()}
+    opt = torch.optim.Adam(pl.parameters(), lr=1e-2)
+    log_prob, entropy, value = pl.evaluate_actions(obs, out["stop"], out["subgoal"])
+    (-log_prob.mean() - entropy.mean() + (value - 1).pow(2).mean()).backward()
+    assert all(p.grad is None for p in ex.parameters())
+    assert eli.grad is None  # the planner used a detached copy
+    eli_cols = pl.fc[0].weight.grad[:, -ELI_DIM:]
+    assert eli_cols.abs().sum() > 0  # ... and did use it
+    opt.step()
+    for k, v in ex.state_dict().items():
+        assert torch.equal(v, before[k]), k
+
+
+def test_planner_without_eli_ignores_it():
+    pl = Planner(use_eli=False, channels=(8, 8), hidden=64)
+    obs = pl.example_obs(2)
+    v1 = pl.evaluate_actions(obs, torch.zeros(2), torch.zeros(2, 2))[2]
+    obs["eli"] = obs["eli"] + 5
+    assert torch.equal(v1, pl.evaluate_actions(obs, torch.zeros(2), torch.zeros(2, 2))[2])
+
+
+def test_planner_actions():
+    torch.manual_seed(0)
+    pl = Planner(rho_max=4.0, init_log_std=1.5, channels=(8, 8), hidden=64)  # wide std: samples leave the box
+    obs = pl.example_obs(256)
+    out = pl.act(obs)
+    assert out["stop"].shape == (256,) and out["subgoal"].shape == out["subgoal_env"].shape == (256, 2)
+    assert out["log_prob"].shape == out["value"].shape == (256,)
+    raw, env = out["subgoal"], out["subgoal_env"]
+    assert ((raw[:, 0] < 0) | (raw[:, 0] > 4)).any() and (raw[:, 1].abs() > math.pi).any()
+    assert env[:, 0].min() >= 0 and env[:, 0].max() <= 4 and env[:, 1].double().abs().max() <= math.pi
+    torch.testing.assert_close(torch.cos(env[:, 1]), torch.cos(raw[:, 1]), atol=1e-5, rtol=0)  # wrapped, not clipped
+    # log-prob is computed on the raw sample; evaluate_actions reproduces it
+    log_prob, _, value = pl.evaluate_actions(obs, out["stop"], raw)
+    torch.testing.assert_close(log_prob, out["log_prob"])
+    torch.testing.assert_close(value, out["value"])
+    # a stop decision's log-prob does not depend on the (unused) sub-goal
+    ones = torch.ones(256, dtype=torch.long)
+    lp_a = pl.evaluate_actions(obs, ones, raw)[0]
+    lp_b = pl.evaluate_actions(obs, ones, raw + 3)[0]
+    torch.testing.assert_close(lp_a, lp_b)
+    edge = pl.subgoal_to_env(torch.tensor([[5.0, math.pi], [-1.0, -math.pi], [1.0, 3 * math.pi / 2]], dtype=torch.float32))
+    assert edge[:, 0].tolist() == [4.0, 0.0, 1.0] and edge[:, 1].double().abs().max() <= math.pi
+    assert edge[2, 1].item() == pytest.approx(-math.pi / 2)
+    det = pl.act(obs, deterministic=True)
+    torch.testing.assert_close(det["subgoal"][:, 0].mean(), torch.tensor(2.0), atol=0.1, rtol=0)  # starts mid-range
+
+
+@pytest.mark.parametrize("resolution", [64, 128])
+@pytest.mark.parametrize("cls,memory", [(Executor, "gru"), (Executor, "smt"), (FlatPolicy, "gru"), (FlatPolicy, "smt")])
+def test_recurrent_shapes(cls, memory, resolution):
+    policy = cls(memory, resolution)
+    B, T = 2, 3
+    obs = policy.example_obs(B)
+    assert obs["rgb"].shape == (B, resolution, resolution, 3) and obs["rgb"].dtype == torch.uint8
+    assert ("subgoal" if cls is Executor else "pointgoal") in obs
+    state = policy.initial_state(B)
+    out, new_state = policy.act({k: v.numpy() for k, v in obs.items()}, state, [True, False])  # numpy works too
+    assert out["action"].shape == out["log_prob"].shape == out["value"].shape == (B,)
+    assert out["eli"].shape == (B, ELI_DIM) and out["eli"].abs().max() <= 1
+    assert new_state.shape == state.shape
+    assert state.shape == ((B, 512) if memory == "gru" else (B, 256 if cls is FlatPolicy else 128, 129))
+    seq = _stack([policy.example_obs(B) for _ in range(T)])
+    lp, ent, v = policy.evaluate_sequences(seq, torch.zeros(T, B), torch.zeros(T, B, dtype=torch.bool), state)
+    assert lp.shape == ent.shape == v.shape == (T, B)
+
+
+def test_planner_shapes():
+    pl = Planner(ego_channels=3, channels=(8, 8), hidden=64)
+    obs = pl.example_obs(5)
+    assert obs["ego_map"].shape == (5, 3, 32, 32)
+    lp, ent, v = pl.evaluate_actions(obs, torch.zeros(5), torch.zeros(5, 2))
+    assert lp.shape == ent.shape == v.shape == (5,)
+
+
+def _assert_orthogonal(w, gain):
+    w = w.detach().flatten(1)
+    gram = w @ w.T if w.shape[0] <= w.shape[1] else w.T @ w
+    torch.testing.assert_close(gram, gain ** 2 * torch.eye(gram.shape[0]), atol=1e-4 * max(gain ** 2, 1), rtol=0)
+
+
+def test_orthogonal_init(planner):
+    ex, pl = Executor("gru", 64), planner
+    _assert_orthogonal(ex.encoder.convs[0].weight, math.sqrt(2))
+    _assert_orthogonal(ex.encoder.fc[0].weight, math.sqrt(2))
+    _assert_orthogonal(ex.actor.weight, 0.01)
+    _assert_orthogonal(ex.critic.weight, 1.0)
+    _assert_orthogonal(pl.convs[0].weight, math.sqrt(2))
+    _assert_orthogonal(pl.stop_logits.weight, 0.01)
+    _assert_orthogonal(pl.subgoal_mean.weight, 0.01)
+    _assert_orthogonal(pl.critic.weight, 1.0)
+    assert torch.all(ex.actor.bias == 0) and torch.all(ex.encoder.convs[0].bias == 0)
+    assert pl.subgoal_mean.bias.tolist() == [2.0, 0.0]
+
+
+def test_flops_and_matmul_speed(planner):
+    from plex_ma.bench_flops import matmul_gflops, model_flops_per_step
+
+    ex = Executor("gru", 64)
+    flops = model_flops_per_step(ex)
+    conv1 = 2 * 15 * 15 * 32 * 4 * 8 * 8  # the first conv alone: 2 * out positions * out ch * in ch * k * k
+    gru = 2 * 3 * (515 * 512 + 512 * 512)
+    assert flops > conv1 + gru
+    assert model_flops_per_step(Executor("smt", 64)) > 0 and model_flops_per_step(planner) > 0
+    assert matmul_gflops(n=256, seconds=0.05) > 0
