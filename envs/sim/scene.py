@@ -297,10 +297,13 @@ def rasterize(scene: Scene, cell_size: float = CELL_SIZE, agent_radius: float = 
     kind_hi = np.asarray(hi, np.float32)
     # Anything whose solid part starts below the agent's height blocks it.
     blocking = (kind_hi[kind] > 0) & (kind_lo[kind] < AGENT_HEIGHT)
-    # Conservative clearance: every point of a navigable cell is at least agent_radius
-    # from every point of every blocking cell (centre distances minus two half-diagonals).
-    edt = ndimage.distance_transform_edt(~blocking) * cell_size
-    nav = edt >= agent_radius + cell_size * np.sqrt(2.0)
+    # Exact clearance: a cell is navigable when every point of it is at least agent_radius
+    # from every point of every blocking cell. Between two cells whose centres are (di, dj)
+    # cells apart, that square-to-square distance is |(max(|di|-1, 0), max(|dj|-1, 0))|
+    # cells: the centre distance to the nearest cell of the blocking set grown by one cell.
+    near = ndimage.binary_dilation(blocking, structure=np.ones((3, 3), bool))
+    edt = ndimage.distance_transform_edt(~near) * cell_size
+    nav = (edt >= agent_radius - 1e-9) & ~blocking
     comp, ncomp = ndimage.label(nav, structure=np.ones((3, 3)))
     comp = comp.astype(np.int32) - 1
     if ncomp == 0:
