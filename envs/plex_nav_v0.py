@@ -49,7 +49,8 @@ the paper). A success is a planner stop with the geodesic distance to the goal b
 ## Episode end
 
 A planner stop terminates both agents; 500 executor actions truncate both. Each agent then
-takes one dead step (`step(None)`), as PettingZoo requires. `infos[agent]` carries
+takes one dead step (`step(None)`), as PettingZoo requires; a step after that raises
+`InvalidAction` (call `reset()`). `infos[agent]` carries
 `scene_id`, `episode_id`, `geodesic_distance` (start to goal), `distance_to_goal`,
 `collisions`, `steps` (executor actions so far), and at the end `success` and `spl`.
 
@@ -89,7 +90,10 @@ expect `Box` or `Discrete` spaces (`color_reduction_v0`, `resize_v1`,
 `frame_stack_v1`, `normalize_obs_v0`, `pad_action_space_v0`, ...), do not apply to the
 native env. Reward and timing wrappers do: `clip_reward_v0`, `sticky_actions_v0` and
 `frame_skip_v0` (the last two repeat an agent's action, which only makes sense for the
-executor). `compat_env()` gives a Box/Discrete version for generic trainers.
+executor; `frame_skip_v0`, written for round-robin games, also replays the planner's
+previous action when the executor's turn ends during a skip). `compat_env()` gives a
+Box/Discrete version for generic trainers; its docstring (`plex_ma.envs.compat`) lists
+every SuperSuit wrapper and what it does here.
 
 ## Version history
 
@@ -115,8 +119,18 @@ AGENTS = ["planner", "executor"]
 def env(**kwargs) -> AECEnv:
     """The environment with PettingZoo's standard wrappers (order enforcing, bounds)."""
     e = raw_env(**kwargs)
-    e = wrappers.OrderEnforcingWrapper(e)
+    e = _OrderEnforcing(e)
     return e
+
+
+class _OrderEnforcing(wrappers.OrderEnforcingWrapper):
+    """PettingZoo's order enforcing, except that a step after the episode ended raises
+    :class:`InvalidAction` (as ``raw_env`` does) instead of only logging a warning."""
+
+    def step(self, action) -> None:
+        if self._has_reset and not self.agents:
+            raise InvalidAction("step() called after the episode ended; call reset()")
+        super().step(action)
 
 
 class raw_env(AECEnv, EzPickle):
@@ -247,11 +261,18 @@ def _unpack(action, agent: str, keys: tuple[str, str]):
         raise InvalidAction(f"{agent}: action keys {sorted(action)} (missing {missing}, unexpected {extra}); "
                             f"expected {list(keys)}")
     a, b = action[keys[0]], action[keys[1]]
+    for k, v in zip(keys, (a, b)):
+        if v is None:
+            raise InvalidAction(f"{agent}: action {k!r} is None; expected a number or an array")
     if np.ndim(a) != 0:
         raise InvalidAction(f"{agent}: action {keys[0]!r} must be a scalar, got shape {np.shape(a)}")
     want = (2,) if agent == "planner" else (128,)
-    if np.shape(b) != want:
-        raise InvalidAction(f"{agent}: action {keys[1]!r} has shape {np.shape(b)}, expected {want}")
+    try:
+        shape_b = np.shape(b)
+    except ValueError:  # ragged nested sequences
+        raise InvalidAction(f"{agent}: action {keys[1]!r} is a ragged sequence, expected shape {want}") from None
+    if shape_b != want:
+        raise InvalidAction(f"{agent}: action {keys[1]!r} has shape {shape_b}, expected {want}")
     if isinstance(a, (float, np.floating)) and not (math.isfinite(a) and float(a).is_integer()):
         raise InvalidAction(f"{agent}: action {keys[0]!r} must be an integer, got {a!r}")
     return a, b

@@ -22,9 +22,11 @@ planner     geodesic progress towards the end goal + slack + collision
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, fields
 
+import numba
 import numpy as np
 
 from .sim import BatchedSim, Episode, Geodesics, scene_bank
@@ -126,6 +128,26 @@ def progress_reward(d_prev: np.ndarray, d_new: np.ndarray, collided: np.ndarray,
     return (d_prev - d_new) + cfg.slack_reward + cfg.collision_reward * collided
 
 
+def _serial_for_one_world(method):
+    """Run ``method`` with one numba thread when there is a single world (the AEC and gym
+    envs). One world leaves the kernels nothing to share out, and numba's OpenMP threads
+    spin while they wait: beside other busy processes (several envs, pytest-xdist
+    workers) that made single-world steps up to ten times slower."""
+
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        if self.n != 1 or numba.get_num_threads() == 1:
+            return method(self, *args, **kwargs)
+        prev = numba.get_num_threads()
+        numba.set_num_threads(1)
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            numba.set_num_threads(prev)
+
+    return run
+
+
 def _wrap(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
@@ -172,6 +194,7 @@ class _Worlds:
         rng = self.rngs[i]
         return sample_episode(self.bank, int(rng.integers(len(self.bank))), rng, self.geo)
 
+    @_serial_for_one_world
     def reset_rows(self, rows, episodes: list[Episode] | None = None) -> None:
         """Start new episodes in ``rows`` (given ones, or the next sampled/fixed ones)."""
         rows = np.asarray(rows, np.int64).reshape(-1)
@@ -239,6 +262,7 @@ class PlexWorlds(_Worlds):
         self.eli = np.zeros((n, ELI_DIM), np.float32)  # last ELI the executor sent
         self.planner_decisions = np.zeros(n, np.int64)
 
+    @_serial_for_one_world
     def reset_rows(self, rows, episodes=None) -> None:
         super().reset_rows(rows, episodes)
         rows = np.asarray(rows, np.int64).reshape(-1)
@@ -251,6 +275,7 @@ class PlexWorlds(_Worlds):
         self.planner_decisions[rows] = 0
 
     # ------------------------------------------------------------------ observations
+    @_serial_for_one_world
     def planner_obs(self, rows) -> dict:
         rows = np.asarray(rows, np.int64).reshape(-1)
         return {
@@ -259,6 +284,7 @@ class PlexWorlds(_Worlds):
             "eli": self.eli[rows].copy() if self.cfg.eli else np.zeros((len(rows), ELI_DIM), np.float32),
         }
 
+    @_serial_for_one_world
     def executor_obs(self, rows) -> dict:
         rows = np.asarray(rows, np.int64).reshape(-1)
         return {
@@ -293,6 +319,7 @@ class PlexWorlds(_Worlds):
         return a, e
 
     # ------------------------------------------------------------------ stepping
+    @_serial_for_one_world
     def step(self, stop=None, subgoal=None, action=None, eli=None) -> PlexStep:
         """One action for every world that is not done: the planner's (``stop``, ``subgoal``)
         where it is the planner's turn, the executor's (``action``, ``eli``) elsewhere.
@@ -369,8 +396,15 @@ class PlexWorlds(_Worlds):
         active[rows] = True
         d_goal_prev = sim.distance_to_goal[rows].copy()
         d_sub_prev = self.subgoal_dist[rows].copy()
+        pos_prev = sim.pos[rows].copy()
         collided = sim.step(acts, active)[rows]
-        d_sub = self._subgoal_distance(rows)
+        # The sub-goal is fixed during the turn, so the geodesic distance to it (an A*
+        # search, the costliest part of a step) changes only where the agent moved; turns,
+        # STOP and blocked moves keep the previous value, which is exactly what A* returns.
+        d_sub = d_sub_prev.copy()
+        moved = np.any(sim.pos[rows] != pos_prev, axis=1)
+        if moved.any():
+            d_sub[moved] = self._subgoal_distance(rows[moved])
         self.subgoal_dist[rows] = d_sub
         stopped = action == STOP
         ex_r = progress_reward(d_sub_prev, d_sub, collided, cfg)
@@ -400,11 +434,13 @@ class PointNavWorlds(_Worlds):
     def __init__(self, cfg: NavConfig, num_worlds: int = 1, seed: int | None = None):
         super().__init__(cfg, num_worlds, seed, egomap=False)
 
+    @_serial_for_one_world
     def obs(self, rows) -> dict:
         rows = np.asarray(rows, np.int64).reshape(-1)
         return {"rgb": self.sim.rgb[rows].copy(), "depth": self.sim.depth[rows].copy(),
                 "pointgoal": self.goal_vector(rows)}
 
+    @_serial_for_one_world
     def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Apply one action per live world. Returns (rewards, terminated, truncated)."""
         cfg = self.cfg

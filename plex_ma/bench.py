@@ -4,6 +4,20 @@
 episodes run to 500 steps and reset): every step renders RGB-D, updates the ego maps and
 looks up the geodesic distance to the goal. Resets (episode sampling with its Dijkstra
 field) are included in the timing.
+
+``env`` measures the environments built on it, with random valid actions (the planner
+stops with a small probability, so episodes are long):
+
+* ``aec_turns_per_second``: ``plex_nav_v0.env()`` (one world) driven the PettingZoo way
+  (``agent_iter``, ``last()``, ``step``), every turn of either agent counted;
+* ``vector_steps_per_second``: ``PlexVectorEnv`` at ``--num-envs`` worlds, one action per
+  world per call (planner or executor), i.e. ``num_envs * calls / s``;
+* ``vector_executor_steps_per_second``: only the executor actions of those, i.e. the
+  simulator steps the vector env delivers;
+* ``sim_steps_per_second``: ``bench_sim`` at the same ``--num-envs`` and ``--resolution``;
+* ``ratio``: vector executor steps / raw simulator steps, the env's overhead over the
+  simulator (a planner action steps no simulator, so counting it would flatter the env;
+  ``ratio_all_actions`` counts it anyway). The goal is ``ratio >= 0.7`` at 64 worlds, 128 px.
 """
 
 from __future__ import annotations
@@ -52,38 +66,113 @@ def bench_sim(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
             "machine": machine()}
 
 
+def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str = "procgen",
+              aec_turns: int = 2000, sim_steps: int | None = None, planner_stop_prob: float = 0.01,
+              executor_stop_prob: float = 0.1) -> dict:
+    """AEC turns/s of one ``plex_nav_v0.env``, ``PlexVectorEnv`` steps/s at ``num_envs``
+    worlds and the raw simulator's steps/s under the same settings (see the module docstring)."""
+    from plex_ma.envs import plex_nav_v0
+    from plex_ma.envs.vector import EXECUTOR, PlexVectorEnv
+
+    rng = np.random.default_rng(seed)
+    cfg = dict(resolution=resolution, scenes=scenes)
+
+    # One AEC env, driven as a PettingZoo user would.
+    env = plex_nav_v0.env(**cfg)
+    rho_max = env.unwrapped.config.rho_max
+    zero_eli = np.zeros(128, np.float32)
+
+    def aec_action(agent):
+        if agent == "planner":
+            return {"stop": int(rng.random() < planner_stop_prob),
+                    "subgoal": np.array([rng.uniform(0, rho_max), rng.uniform(-np.pi, np.pi)], np.float32)}
+        a = 0 if rng.random() < executor_stop_prob else int(rng.integers(1, 4))
+        return {"action": a, "eli": zero_eli}
+
+    def run_aec(n: int) -> int:
+        episodes = 0
+        done = 0
+        while done < n:
+            env.reset(seed=int(rng.integers(2**31)))
+            episodes += 1
+            for agent in env.agent_iter(n - done):
+                _, _, term, trunc, _ = env.last()
+                env.step(None if term or trunc else aec_action(agent))
+                done += 1
+        return episodes
+
+    run_aec(50)  # load the compiled kernels
+    t0 = time.perf_counter()
+    aec_episodes = run_aec(aec_turns)
+    aec_dt = time.perf_counter() - t0
+
+    # The vector env: every world gets an action each call; each reads its agent's part.
+    venv = PlexVectorEnv(num_envs, seed=seed, **cfg)
+    venv.reset()
+    n = num_envs
+
+    def vec_actions():
+        return dict(stop=(rng.random(n) < planner_stop_prob).astype(np.int64),
+                    subgoal=np.stack([rng.uniform(0, rho_max, n), rng.uniform(-np.pi, np.pi, n)], 1),
+                    action=np.where(rng.random(n) < executor_stop_prob, 0, rng.integers(1, 4, n)),
+                    eli=np.zeros((n, 128), np.float32))
+
+    for _ in range(3):
+        venv.step(**vec_actions())
+    executor_steps = 0
+    ended = 0
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        out = venv.step(**vec_actions())
+        executor_steps += int(np.sum(out.acted == EXECUTOR))
+        ended += len(out.episode_infos)
+    vec_dt = time.perf_counter() - t0
+
+    sim = bench_sim(num_envs, resolution, steps if sim_steps is None else sim_steps, seed, scenes)
+    vec_sps = steps * n / vec_dt
+    vec_ex_sps = executor_steps / vec_dt
+    return {"benchmark": "env", "num_envs": num_envs, "resolution": resolution,
+            "aec_turns_per_second": aec_turns / aec_dt, "aec_turns": aec_turns, "aec_episodes": aec_episodes,
+            "vector_steps_per_second": vec_sps, "vector_executor_steps_per_second": vec_ex_sps,
+            "vector_calls": steps, "vector_executor_fraction": executor_steps / (steps * n),
+            "vector_episodes_ended": ended, "sim_steps_per_second": sim["steps_per_second"],
+            "ratio": vec_ex_sps / sim["steps_per_second"], "ratio_all_actions": vec_sps / sim["steps_per_second"],
+            "planner_stop_prob": planner_stop_prob, "executor_stop_prob": executor_stop_prob,
+            "machine": machine()}
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m plex_ma.bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="what", required=True)
+
+    def common(sp, steps: int, steps_help: str) -> None:
+        sp.add_argument("--num-envs", type=int, default=64, help="worlds stepped per call")
+        sp.add_argument("--resolution", type=int, default=128, help="square image size in pixels")
+        sp.add_argument("--steps", type=int, default=steps, help=steps_help)
+        sp.add_argument("--seed", type=int, default=0)
+        sp.add_argument("--scenes", default="procgen", help="scene source")
+        sp.add_argument("--json", action="store_true", help="print one JSON object")
+
     ps = sub.add_parser("sim", help="raw batched simulator throughput")
-    ps.add_argument("--num-envs", type=int, default=64, help="worlds stepped per call")
-    ps.add_argument("--resolution", type=int, default=128, help="square image size in pixels")
-    ps.add_argument("--steps", type=int, default=300, help="batched steps to time")
-    ps.add_argument("--seed", type=int, default=0)
-    ps.add_argument("--scenes", default="procgen", help="scene source")
-    ps.add_argument("--json", action="store_true", help="print one JSON object")
-    for name, fn in EXTRA.items():
-        fn(sub)
+    common(ps, 300, "batched steps to time")
+    pe = sub.add_parser("env", help="AEC env turns/s, vector env steps/s and their ratio to the raw simulator")
+    common(pe, 100, "vector env calls to time (the raw simulator gets as many)")
+    pe.add_argument("--aec-turns", type=int, default=2000, help="AEC turns to time")
+    pe.add_argument("--planner-stop-prob", type=float, default=0.01, help="chance that a planner action is STOP")
+    pe.add_argument("--executor-stop-prob", type=float, default=0.1, help="chance that an executor action is STOP")
     a = p.parse_args(argv)
     if a.what == "sim":
         out = bench_sim(a.num_envs, a.resolution, a.steps, a.seed, a.scenes)
     else:
-        out = a.run(a)
+        out = bench_env(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, aec_turns=a.aec_turns,
+                        planner_stop_prob=a.planner_stop_prob, executor_stop_prob=a.executor_stop_prob)
     if a.json:
         print(json.dumps(out))
     else:
         for k, v in out.items():
-            print(f"{k:>28}: {v:,.1f}" if isinstance(v, float) else f"{k:>28}: {v}")
+            print(f"{k:>34}: {v:,.3f}" if isinstance(v, float) else f"{k:>34}: {v}")
 
-
-# Other benchmarks register an argparse sub-parser builder here (they set ``run``).
-EXTRA: dict = {}
-
-try:  # env and train benchmarks live beside the modules they measure
-    from plex_ma import bench_extra  # noqa: F401
-except ImportError:
-    pass
 
 if __name__ == "__main__":
     main()

@@ -1,0 +1,266 @@
+"""``plex_nav_v0.compat_env()``: a Box/Discrete view of ``plex_nav_v0`` for generic trainers.
+
+```python
+from plex_ma.envs import plex_nav_v0
+env = plex_nav_v0.compat_env(resolution=64)   # any plex_nav_v0 argument except eli=True
+```
+
+Generic PettingZoo trainers (Tianshou's ``PettingZooEnv``, SuperSuit's vector envs, most
+tutorials) want one flat ``Box`` observation, one ``Discrete`` action space and the same
+spaces for every agent. This view gives them that, built from SuperSuit's wrappers plus
+one small wrapper of ours for the action mask:
+
+| | |
+|---|---|
+| Agents | `["planner", "executor"]`, same turn order, rewards and infos as `plex_nav_v0` |
+| Observation (both agents) | `Dict(observation=Box(float32, (L,)), action_mask=Box(0, 1, (K,), int8))` |
+| Action (both agents) | `Discrete(K)`, `K = 1 + len(subgoal_distances) * subgoal_directions` (33 by default) |
+
+**observation** (float32, the same length L for both agents; 4,100 by default): a one-hot
+agent id (`[1, 0]` planner, `[0, 1]` executor), then the agent's own features, then zero
+padding up to L:
+
+* planner: the ego map flattened in (channel, row, column) order (2 x 32 x 32 in [0, 1]),
+  then the goal vector (distance m, direction rad). The ELI is not included: it is off here.
+* executor: RGB scaled to [0, 1] and depth, downsampled to `image_size` x `image_size`
+  (block mean when the resolution is a multiple of it, nearest pixel otherwise) and
+  flattened channel-first (R, G, B, depth planes), then the sub-goal vector (distance m,
+  direction rad). Reshape `obs[2:2 + 4 * S * S]` to `(4, S, S)` to get the image back.
+
+**action_mask** (int8, length K): 1 for the actions of the agent that observes it. It is
+the same for every step of an agent: the planner may use all K actions, the executor the
+first 4.
+
+**actions**:
+
+* planner: `0` stops the episode; `1 + i * subgoal_directions + j` proposes the sub-goal at
+  distance `subgoal_distances[i]` (default `rho_max * (1, 2, 3, 4) / 4` = 1, 2, 3, 4 m) in
+  direction `2 pi j / subgoal_directions`, wrapped to [-pi, pi) (default 8 directions, 0 =
+  straight ahead, counter-clockwise).
+* executor: `0` STOP, `1` MOVE_FORWARD, `2` TURN_LEFT, `3` TURN_RIGHT. It sends a zero ELI
+  with every action: the ELI channel is off (`eli=False`), because a Discrete action
+  cannot carry a 128-float message. Passing `eli=True` is an error.
+
+An action outside `0..K-1`, one that the mask forbids (an executor action above 3), a
+non-integer, or a step after the episode ended raises
+:class:`~plex_ma.envs.rules.InvalidAction` naming the problem; nothing is changed.
+
+`compat_env()` pickles (it rebuilds from its arguments, like ``EzPickle``).
+
+## How it is built
+
+From the inside out:
+
+1. ``plex_nav_v0.env(eli=False, ...)``: the native env with order enforcing.
+2. ``supersuit.observation_lambda_v0``: each agent's Dict observation to its flat vector
+   with the one-hot id in front (``agent_indicator_v0`` is not used: it appends the id at
+   the end, scaled to the space's largest bound, here the 100 m goal distance).
+3. ``supersuit.pad_observations_v0``: zero-pads the planner's vector to the executor's length.
+4. ``supersuit.action_lambda_v1``: the Discrete choices to the native Dict actions
+   (planner ``Discrete(K)``, executor ``Discrete(4)``).
+5. ``supersuit.pad_action_space_v0``: both to ``Discrete(K)``. (On its own it would
+   silently map an executor action above 3 to 0, STOP.)
+6. :class:`ActionMaskWrapper` (ours): adds ``action_mask`` and checks every action
+   against it before it reaches step 5, since SuperSuit has no action-mask wrapper.
+
+## SuperSuit on the native ``plex_nav_v0``
+
+The native spaces are ``Dict`` spaces, so most SuperSuit wrappers, which expect ``Box`` or
+``Discrete`` spaces, do not apply to it: ``color_reduction_v0``, ``resize_v1``,
+``frame_stack_v1``, ``normalize_obs_v0``, ``dtype_v0``, ``flatten_v0``, ``reshape_v0``,
+``pad_observations_v0``, ``pad_action_space_v0`` and ``agent_indicator_v0`` fail when
+they are built; ``clip_actions_v0``, ``max_observation_v0`` and ``delay_observations_v0``
+fail on the first step; ``black_death_v3`` needs a parallelizable env. Three wrappers work
+(pass PettingZoo's ``api_test``): ``clip_reward_v0``; ``sticky_actions_v0``, which
+repeats an agent's previous action with a probability (each agent its own, planner
+included); and ``frame_skip_v0``, which repeats the acting agent's action up to N times,
+but which was written for round-robin games: when the executor's turn ends during a
+skip it also replays the planner's previous action. ``tests/test_compat.py`` checks all
+of this. Apply the observation and action wrappers to ``compat_env()`` instead.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import supersuit as ss
+from gymnasium import spaces
+from supersuit.utils.base_aec_wrapper import BaseWrapper
+
+from .rules import ELI_DIM, InvalidAction
+from .spaces import MAX_GOAL_DISTANCE
+
+EXECUTOR_ACTIONS = ("STOP", "MOVE_FORWARD", "TURN_LEFT", "TURN_RIGHT")
+AGENT_IDS = {"planner": 0, "executor": 1}
+
+
+def compat_env(image_size: int = 32, subgoal_distances=None, subgoal_directions: int = 8, **config):
+    """``plex_nav_v0`` with flat Box observations, one Discrete(K) action space and an
+    action mask (see the module docstring).
+
+    Args:
+        image_size: side of the executor's downsampled RGB-D (at most ``resolution``).
+        subgoal_distances: the planner's sub-goal distances in metres, each in
+            (0, rho_max] (default: ``rho_max * (1, 2, 3, 4) / 4``).
+        subgoal_directions: number of evenly spaced sub-goal directions (default 8).
+        **config: arguments of ``plex_nav_v0.env`` (``eli`` must be left off or False).
+    """
+    from .plex_nav_v0 import env as native_env
+
+    build_args = dict(image_size=image_size, subgoal_distances=subgoal_distances,
+                      subgoal_directions=subgoal_directions, **config)
+    if config.get("eli", False) is not False:
+        raise ValueError("compat_env: the ELI channel is off in the compat env (a Discrete action cannot "
+                         f"carry it); leave eli out or pass eli=False, got eli={config['eli']!r}")
+    config["eli"] = False
+    base = native_env(**config)
+    cfg = base.unwrapped.config
+    if not isinstance(image_size, (int, np.integer)) or not 1 <= image_size <= cfg.resolution:
+        raise ValueError(f"compat_env: image_size={image_size!r} must be an integer in [1, resolution="
+                         f"{cfg.resolution}]")
+    if not isinstance(subgoal_directions, (int, np.integer)) or subgoal_directions < 1:
+        raise ValueError(f"compat_env: subgoal_directions={subgoal_directions!r} must be a positive integer")
+    if subgoal_distances is None:
+        subgoal_distances = tuple(cfg.rho_max * k / 4 for k in (1, 2, 3, 4))
+    try:
+        dists = tuple(float(d) for d in subgoal_distances)
+    except (TypeError, ValueError):
+        raise ValueError(f"compat_env: subgoal_distances={subgoal_distances!r} must be numbers") from None
+    if not dists or not all(0 < d <= cfg.rho_max for d in dists):
+        raise ValueError(f"compat_env: subgoal_distances={subgoal_distances!r} must be non-empty and each in "
+                         f"(0, rho_max={cfg.rho_max}]")
+    grid = subgoal_grid(dists, int(subgoal_directions))
+
+    e = ss.observation_lambda_v0(base, functools.partial(_flat_obs, image_size=int(image_size)),
+                                 functools.partial(_flat_space, image_size=int(image_size)))
+    e = ss.pad_observations_v0(e)
+    e = ss.action_lambda_v1(e, functools.partial(_native_action, grid=grid),
+                            functools.partial(_discrete_space, k=1 + len(grid)))
+    e = ss.pad_action_space_v0(e)
+    return ActionMaskWrapper(e, build_args)
+
+
+def subgoal_grid(distances, directions: int) -> np.ndarray:
+    """(len(distances) * directions, 2) polar sub-goals; row ``i * directions + j`` is
+    (distances[i], 2 pi j / directions wrapped to [-pi, pi))."""
+    th = (2 * np.pi * np.arange(directions) / directions + np.pi) % (2 * np.pi) - np.pi
+    return np.array([(d, t) for d in distances for t in th], np.float32)
+
+
+# ---------------------------------------------------------------- observations
+def _downsample(img: np.ndarray, size: int) -> np.ndarray:
+    """(R, R, C) -> (size, size, C) float32: block mean if R is a multiple, else nearest."""
+    r = img.shape[0]
+    if r % size == 0:
+        k = r // size
+        return img.reshape(size, k, size, k, img.shape[2]).mean(axis=(1, 3), dtype=np.float32)
+    idx = ((np.arange(size) + 0.5) * r / size).astype(np.int64)
+    return img[idx][:, idx].astype(np.float32)
+
+
+def _flat_obs(obs, obs_space, agent, image_size: int) -> np.ndarray:
+    if agent == "planner":
+        return np.concatenate([[1.0, 0.0], obs["ego_map"].ravel(), obs["goal"]]).astype(np.float32)
+    rgb = _downsample(obs["rgb"], image_size) / np.float32(255.0)
+    depth = _downsample(obs["depth"], image_size)
+    img = np.concatenate([rgb, depth], axis=2).transpose(2, 0, 1)
+    return np.concatenate([[0.0, 1.0], img.ravel(), obs["subgoal"]]).astype(np.float32)
+
+
+def _flat_space(obs_space, agent, image_size: int) -> spaces.Box:
+    polar_lo, polar_hi = [0.0, -np.pi], [MAX_GOAL_DISTANCE, np.pi]
+    if agent == "planner":
+        n = int(np.prod(obs_space["ego_map"].shape))
+    else:
+        n = 4 * image_size * image_size
+    low = np.concatenate([[0.0, 0.0], np.zeros(n), polar_lo]).astype(np.float32)
+    high = np.concatenate([[1.0, 1.0], np.ones(n), polar_hi]).astype(np.float32)
+    return spaces.Box(low, high, dtype=np.float32)
+
+
+# ---------------------------------------------------------------- actions
+def _native_action(action, act_space, agent, grid: np.ndarray):
+    a = int(action)
+    if agent == "planner":
+        if a == 0:
+            return {"stop": 1, "subgoal": np.zeros(2, np.float32)}
+        return {"stop": 0, "subgoal": grid[a - 1].copy()}
+    return {"action": a, "eli": np.zeros(ELI_DIM, np.float32)}
+
+
+def _discrete_space(act_space, agent, k: int) -> spaces.Discrete:
+    return spaces.Discrete(k if agent == "planner" else len(EXECUTOR_ACTIONS))
+
+
+class ActionMaskWrapper(BaseWrapper):
+    """Adds ``action_mask`` to the flat observations and rejects masked or malformed
+    actions with :class:`InvalidAction` before they reach SuperSuit's wrappers."""
+
+    def __init__(self, env, build_args: dict):
+        super().__init__(env)
+        self._build_args = dict(build_args)
+        agents = env.possible_agents
+        self.num_actions = int(env.action_space(agents[0]).n)
+        own = {"planner": self.num_actions, "executor": len(EXECUTOR_ACTIONS)}
+        self._masks = {}
+        for a in agents:
+            m = np.zeros(self.num_actions, np.int8)
+            m[:own[a]] = 1
+            self._masks[a] = m
+        self._obs_space = spaces.Dict({
+            "observation": env.observation_space(agents[0]),
+            "action_mask": spaces.Box(0, 1, (self.num_actions,), np.int8),
+        })
+
+    def __reduce__(self):
+        return (functools.partial(compat_env, **self._build_args), ())
+
+    def observation_space(self, agent):
+        return self._obs_space
+
+    def action_mask(self, agent) -> np.ndarray:
+        return self._masks[agent].copy()
+
+    def _modify_observation(self, agent, observation):
+        return {"observation": observation, "action_mask": self._masks[agent].copy()}
+
+    def _modify_action(self, agent, action):
+        return action
+
+    def step(self, action) -> None:
+        if self._has_reset and not self.agents:
+            raise InvalidAction("step() called after the episode ended; call reset()")
+        if self._has_reset:
+            agent = self.agent_selection
+            if self.terminations[agent] or self.truncations[agent]:
+                if action is not None:
+                    raise InvalidAction(f"{agent}: the episode has ended; the only valid action is None (dead step)")
+            else:
+                action = self._check(agent, action)
+        super().step(action)
+
+    def _check(self, agent: str, action) -> int:
+        k = self.num_actions
+        if action is None:
+            raise InvalidAction(f"{agent}: action is None but the {agent} is alive; expected an integer in 0..{k - 1}")
+        if isinstance(action, (bool, np.bool_)):
+            raise InvalidAction(f"{agent}: action must be an integer in 0..{k - 1}, got the bool {action!r}")
+        if isinstance(action, (int, np.integer)):
+            a = int(action)
+        elif isinstance(action, np.ndarray) and action.shape in ((), (1,)) and np.issubdtype(action.dtype, np.integer):
+            a = int(action.reshape(()))
+        elif isinstance(action, (float, np.floating)) and not math.isfinite(action):
+            raise InvalidAction(f"{agent}: action must be an integer in 0..{k - 1}, got {action!r}")
+        else:
+            shape = f" of shape {action.shape} and dtype {action.dtype}" if isinstance(action, np.ndarray) else ""
+            raise InvalidAction(f"{agent}: action must be an integer in 0..{k - 1} (Discrete({k})), got "
+                                f"{type(action).__name__}{shape} {action!r}")
+        if not 0 <= a < k:
+            raise InvalidAction(f"{agent}: action {a} is out of range; expected an integer in 0..{k - 1}")
+        if not self._masks[agent][a]:
+            raise InvalidAction(f"{agent}: action {a} is masked out; the {agent}'s actions are "
+                                f"0..{int(self._masks[agent].sum()) - 1} ({', '.join(EXECUTOR_ACTIONS)}); "
+                                "see observation['action_mask']")
+        return a

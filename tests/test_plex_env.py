@@ -1,0 +1,465 @@
+"""plex_nav_v0: PettingZoo's own tests, then what they cannot see (turn order, rewards,
+ELI, sub-goals, success, SPL, infos, pickling) and bad input."""
+
+from __future__ import annotations
+
+import math
+import pickle
+
+import numpy as np
+import pytest
+from pettingzoo.test import api_test, performance_benchmark, render_test, seed_test
+
+from plex_ma.envs import plex_nav_v0
+from plex_ma.envs.rules import InvalidAction
+from plex_ma.envs.sim import Episode
+
+from .env_helpers import (SMALL, assert_same_state, drive, executor_action, line_episode, planner_action,
+                          state_snapshot)
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+
+# ---------------------------------------------------------------- PettingZoo's tests
+@pytest.mark.parametrize("config", [
+    dict(SMALL),
+    dict(SMALL, eli=False),
+    dict(SMALL, resolution=128),
+    dict(SMALL, n_ex=2, max_steps=6),  # episodes that truncate
+    dict(SMALL, pose_noise=(0.05, 0.02)),
+], ids=["64px", "eli_off", "128px", "truncating", "noisy_pose"])
+def test_api(config):
+    api_test(plex_nav_v0.env(**config), num_cycles=1000)
+    api_test(plex_nav_v0.raw_env(**config), num_cycles=200)
+
+
+@pytest.mark.parametrize("config", [dict(SMALL), dict(SMALL, pose_noise=(0.05, 0.02))], ids=["exact", "noisy_pose"])
+def test_seed(config):
+    seed_test(lambda: plex_nav_v0.env(**config), num_cycles=300)
+
+
+def test_render():
+    # render_test first builds the env with render_mode="human" only to read
+    # metadata["render_modes"]; this env has no human mode, so map "human" to None.
+    def factory(render_mode=None):
+        return plex_nav_v0.env(render_mode=None if render_mode == "human" else render_mode, **SMALL)
+
+    render_test(factory)
+    e = factory("rgb_array")
+    e.reset(seed=0)
+    img = e.render()
+    assert img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8 and img.std() > 0
+
+
+def test_performance_benchmark(capsys):
+    performance_benchmark(plex_nav_v0.env(**SMALL))  # runs ~5 s and only prints
+    assert "turns per second" in capsys.readouterr().out
+
+
+def test_max_cycles_test_does_not_apply():
+    # The docstring says why pettingzoo.test.max_cycles_test is not run: no max_cycles
+    # argument (length is bounded by max_steps executor actions) and no round-robin cycles.
+    assert "max_cycles_test" in plex_nav_v0.__doc__
+    with pytest.raises(TypeError):
+        plex_nav_v0.env(max_cycles=10, **SMALL)
+
+
+# ---------------------------------------------------------------- episode end
+def test_truncation_after_max_steps_when_planner_never_stops():
+    env = plex_nav_v0.env(**SMALL)
+    env.reset(seed=3)
+    rng = np.random.default_rng(0)
+    executor_actions = 0
+    planner_turns = 0
+    while not (env.truncations["planner"] or env.terminations["planner"]):
+        if env.agent_selection == "planner":
+            planner_turns += 1
+            env.step(planner_action(0, rng.uniform(0.5, 4.0), rng.uniform(-3, 3)))
+        else:
+            env.step(executor_action(int(rng.integers(1, 4))))  # never STOP
+            executor_actions += 1
+    assert executor_actions == 500
+    assert planner_turns == 50  # n_ex = 10 actions per turn, none cut short by STOP
+    assert env.truncations == {"planner": True, "executor": True}
+    assert env.terminations == {"planner": False, "executor": False}
+    for a in ("planner", "executor"):
+        assert env.infos[a]["steps"] == 500 and env.infos[a]["success"] == 0.0 and env.infos[a]["spl"] == 0.0
+    # Then one dead step each, and the episode is over.
+    dead = []
+    while env.agents:
+        _, _, term, trunc, _ = env.last()
+        assert trunc and not term
+        dead.append(env.agent_selection)
+        env.step(None)
+    assert sorted(dead) == ["executor", "planner"]
+    with pytest.raises(InvalidAction, match="after the episode ended"):
+        env.step(None)
+
+
+def test_planner_stop_terminates_both():
+    env = plex_nav_v0.env(**SMALL)
+    env.reset(seed=1)
+    env.step(planner_action(0, 2.0, 0.5))
+    env.step(executor_action(1))
+    env.step(executor_action(0))
+    assert env.agent_selection == "planner"
+    env.step(planner_action(1))
+    assert env.terminations == {"planner": True, "executor": True}
+    assert env.truncations == {"planner": False, "executor": False}
+    env.step(None)
+    env.step(None)
+    assert env.agents == []
+
+
+# ---------------------------------------------------------------- turn order and rewards
+def test_turn_order_and_accumulated_rewards():
+    """An executor turn lasts at most n_ex actions and ends at STOP; last() gives each
+    agent the sum of the per-step rewards it got since it last acted."""
+    n_ex = 4
+    env = plex_nav_v0.env(n_ex=n_ex, max_steps=300, **SMALL)
+    rng = np.random.default_rng(7)
+    turns_ended_by_stop = turns_ended_by_limit = 0
+    planner_rewards_seen = []
+    for episode in range(4):
+        env.reset(seed=episode)
+        pending = {"planner": 0.0, "executor": 0.0}  # sum of env.rewards since the agent last acted
+        run = 0  # executor actions in the current turn
+        last_exec_action = None
+        for agent in env.agent_iter():
+            obs, reward, term, trunc, info = env.last()
+            assert reward == pytest.approx(pending[agent], abs=1e-5), agent
+            pending[agent] = 0.0
+            if agent == "planner":
+                planner_rewards_seen.append(reward)
+                if run:
+                    # The executor handed back control: by STOP, or after n_ex actions.
+                    assert run <= n_ex
+                    if last_exec_action == 0:
+                        turns_ended_by_stop += 1
+                    else:
+                        assert run == n_ex
+                        turns_ended_by_limit += 1
+                run = 0
+            if term or trunc:
+                action = None
+            elif agent == "planner":
+                action = planner_action(int(rng.random() < 0.05), rng.uniform(0.5, 4), rng.uniform(-3, 3))
+            else:
+                last_exec_action = 0 if rng.random() < 0.25 else int(rng.integers(1, 4))
+                action = executor_action(last_exec_action)
+                run += 1
+                assert run <= n_ex
+            env.step(action)
+            for a, r in env.rewards.items():
+                pending[a] += r
+    assert turns_ended_by_stop > 3 and turns_ended_by_limit > 3
+    # The planner earns during the executor's turn: its last() rewards are not all zero.
+    assert sum(abs(r) > 1e-6 for r in planner_rewards_seen) > 10
+
+
+def test_planner_reward_is_sum_over_executor_turn():
+    env = plex_nav_v0.env(**SMALL)
+    env.reset(seed=11)
+    env.step(planner_action(0, 3.0, 0.0))
+    total = env.rewards["planner"]
+    per_step = []
+    while env.agent_selection == "executor":
+        env.step(executor_action(1))
+        per_step.append(env.rewards["planner"])
+    total += sum(per_step)
+    assert len(per_step) == 10
+    assert all(r != 0.0 for r in per_step)  # slack at least
+    assert env.last()[1] == pytest.approx(total, abs=1e-5)
+    assert env._cumulative_rewards["planner"] == pytest.approx(total, abs=1e-5)
+
+
+def test_rewards_match_the_rules():
+    env = plex_nav_v0.env(**SMALL)
+    env.reset(seed=0)
+    raw = env.unwrapped
+    ep = line_episode(raw, 2.0)
+    env.reset(options={"episode": ep})
+    w = raw.worlds
+    env.step(planner_action(0, 1.0, 0.0))
+    d_goal, d_sub = w.sim.distance_to_goal[0], w.subgoal_dist[0]
+    env.step(executor_action(1))  # forward 0.25 m along a free corridor, towards both
+    assert env.rewards["planner"] == pytest.approx(d_goal - w.sim.distance_to_goal[0] - 0.01, abs=1e-5)
+    assert env.rewards["executor"] == pytest.approx(d_sub - w.subgoal_dist[0] - 0.01, abs=1e-5)
+    assert d_goal - w.sim.distance_to_goal[0] == pytest.approx(0.25, abs=0.02)
+    for _ in range(3):
+        env.step(executor_action(1))
+    assert w.subgoal_dist[0] < 0.5
+    env.step(executor_action(0))  # STOP within 0.5 m of the sub-goal: +1, and the turn ends
+    assert env.rewards["executor"] == pytest.approx(1.0 - 0.01, abs=0.02)
+    assert env.agent_selection == "planner"
+
+
+def test_subgoal_distance_is_the_geodesic_after_every_action():
+    """The rules skip the A* search when the agent did not move; the kept value must be
+    what a fresh search gives (turns, STOP, moves blocked by walls)."""
+    env = plex_nav_v0.env(max_steps=200, **SMALL)
+    env.reset(seed=6)
+    w = env.unwrapped.worlds
+    rng = np.random.default_rng(1)
+    blocked = 0
+    while env.agents and not env.truncations["planner"]:
+        if env.agent_selection == "planner":
+            env.step(planner_action(0, rng.uniform(0.5, 4), rng.uniform(-3, 3)))
+        else:
+            a = int(rng.choice(4, p=[0.1, 0.5, 0.2, 0.2]))
+            before = w.sim.pos[0].copy()
+            env.step(executor_action(a))
+            blocked += a == 1 and np.array_equal(before, w.sim.pos[0])
+        if env.agent_selection == "executor" or w.turn_steps[0] > 0:
+            fresh = w.sim.geodesic_to(w.subgoal, np.array([0]))[0]
+            assert w.subgoal_dist[0] == fresh
+    assert w.steps[0] == 200
+
+
+# ---------------------------------------------------------------- ELI and sub-goal
+@pytest.mark.parametrize("eli", [True, False])
+def test_eli_reaches_the_planner(eli):
+    env = plex_nav_v0.env(eli=eli, n_ex=3, **SMALL)
+    env.reset(seed=2)
+    rng = np.random.default_rng(0)
+    assert np.all(env.observe("planner")["eli"] == 0)
+    for turn in range(6):
+        assert env.agent_selection == "planner"
+        env.step(planner_action(0, 2.0, rng.uniform(-3, 3)))
+        sent = None
+        while env.agent_selection == "executor":
+            sent = rng.normal(size=128) * 10
+            env.step(executor_action(int(rng.integers(0, 4)), sent))
+        seen = env.observe("planner")["eli"]
+        assert seen.dtype == np.float32 and seen.shape == (128,)
+        if eli:
+            np.testing.assert_array_equal(seen, sent.astype(np.float32))
+        else:
+            assert np.all(seen == 0)
+
+
+def test_subgoal_vector_follows_the_executor():
+    env = plex_nav_v0.env(**SMALL)
+    env.reset(seed=0)
+    raw = env.unwrapped
+    env.reset(options={"episode": line_episode(raw, 2.0)})
+    env.step(planner_action(0, 2.0, 0.0))  # straight ahead, on a free line
+    w = raw.worlds
+    np.testing.assert_allclose(w.subgoal_raw[0], ep_goal := np.array(raw.worlds.sim.goal[0]), atol=1e-6)
+    v0 = env.observe("executor")["subgoal"]
+    assert v0 == pytest.approx([2.0, 0.0], abs=1e-3)
+    env.step(executor_action(1))
+    v1 = env.observe("executor")["subgoal"]
+    assert v1 == pytest.approx([1.75, 0.0], abs=1e-3)
+    env.step(executor_action(2))  # turn left 10 deg: the sub-goal is now 10 deg to the right
+    v2 = env.observe("executor")["subgoal"]
+    assert v2 == pytest.approx([1.75, -math.radians(10)], abs=1e-3)
+    env.step(executor_action(3))
+    env.step(executor_action(1))
+    v3 = env.observe("executor")["subgoal"]
+    assert v3 == pytest.approx([1.5, 0.0], abs=1e-3)
+    # The sub-goal is fixed in the world: the planner's goal vector agrees with it here.
+    assert env.observe("executor")["subgoal"][0] == pytest.approx(np.hypot(*(ep_goal - w.sim.pos[0])), abs=1e-4)
+
+
+# ---------------------------------------------------------------- success and SPL
+def _episode_near_goal(raw, offset: float) -> Episode:
+    ep = line_episode(raw, offset, clearance=0.2, episode_id=901)
+    return ep
+
+
+@pytest.mark.parametrize("offset,success", [(0.1, True), (0.3, False)])
+def test_success_only_by_planner_stop_within_0_2_m(offset, success):
+    env = plex_nav_v0.env(**SMALL)
+    env.reset(seed=0)
+    raw = env.unwrapped
+    env.reset(options={"episode": _episode_near_goal(raw, offset)})
+    assert env.infos["planner"]["distance_to_goal"] == pytest.approx(offset, abs=0.02)
+    # The executor's STOP near the goal does not end the episode.
+    env.step(planner_action(0, 0.5, 0.0))
+    env.step(executor_action(0))
+    assert env.agent_selection == "planner" and not any(env.terminations.values())
+    env.step(planner_action(1))
+    assert env.terminations == {"planner": True, "executor": True}
+    info = env.infos["planner"]
+    assert info["success"] == float(success)
+    assert env.rewards["planner"] == pytest.approx(10.0 if success else 0.0)
+    assert info["spl"] == (pytest.approx(1.0) if success else 0.0)
+
+
+def test_spl_hand_computed():
+    env = plex_nav_v0.env(**SMALL)
+    env.reset(seed=0)
+    raw = env.unwrapped
+    ep = line_episode(raw, 1.0, behind=0.5)
+    l = ep.geodesic_distance
+    assert l == pytest.approx(1.0, abs=0.05)
+    # Straight there: path 1.0 m.
+    env.reset(options={"episode": ep})
+    drive(env, [1] * 4)
+    if env.agent_selection == "executor":
+        env.step(executor_action(0))
+    env.step(planner_action(1))
+    assert env.infos["planner"]["success"] == 1.0
+    assert env.infos["planner"]["spl"] == pytest.approx(l / max(l, 1.0), abs=1e-6)
+    # A detour: turn around (18 x 10 deg), 0.5 m back, turn around, 1.5 m forward: path 2.0 m.
+    env.reset(options={"episode": ep})
+    drive(env, [2] * 18 + [1] * 2 + [2] * 18 + [1] * 6)
+    assert raw.worlds.collisions[0] == 0
+    if env.agent_selection == "executor":
+        env.step(executor_action(0))
+    env.step(planner_action(1))
+    info = env.infos["executor"]
+    assert info["success"] == 1.0 and info["steps"] == 45
+    assert info["spl"] == pytest.approx(l / 2.0, abs=1e-5)
+    # Stopping short fails: SPL 0.
+    env.reset(options={"episode": ep})
+    drive(env, [1] * 2)
+    if env.agent_selection == "executor":
+        env.step(executor_action(0))
+    env.step(planner_action(1))
+    assert env.infos["planner"]["success"] == 0.0 and env.infos["planner"]["spl"] == 0.0
+
+
+# ---------------------------------------------------------------- infos, spaces, pickling
+def test_infos_from_reset_on():
+    env = plex_nav_v0.env(**SMALL)
+    env.reset(seed=5)
+    for a in env.agents:
+        info = env.infos[a]
+        assert isinstance(info["scene_id"], str) and info["scene_id"].startswith("procgen-train-")
+        assert 1.0 <= info["geodesic_distance"] <= 30.0
+        assert info["distance_to_goal"] == pytest.approx(info["geodesic_distance"], abs=1e-6)
+        assert info["steps"] == 0 and info["collisions"] == 0
+        assert "success" not in info
+    env.step(planner_action(0, 1.0, 0.0))
+    env.step(executor_action(1))
+    assert env.infos["planner"]["steps"] == 1 and env.infos["executor"]["steps"] == 1
+    assert env.infos["planner"] == env.infos["executor"]
+
+
+def test_spaces_are_the_same_objects():
+    env = plex_nav_v0.env(**SMALL)
+    for a in env.possible_agents:
+        assert env.observation_space(a) is env.observation_space(a)
+        assert env.action_space(a) is env.action_space(a)
+    env.reset(seed=0)
+    for a in env.possible_agents:
+        assert env.observation_space(a) is env.observation_space(a)
+        assert env.observation_space(a).contains(env.observe(a))
+
+
+@pytest.mark.parametrize("factory", [plex_nav_v0.env, plex_nav_v0.raw_env], ids=["env", "raw_env"])
+def test_pickle_round_trip(factory):
+    env = factory(n_ex=3, eli=False, **SMALL)
+    env.reset(seed=4)
+    copy = pickle.loads(pickle.dumps(env))
+    assert copy.unwrapped.config == env.unwrapped.config
+    copy.reset(seed=4)
+    env.reset(seed=4)
+    for _ in range(8):
+        agent = env.agent_selection
+        assert copy.agent_selection == agent
+        for k, v in env.observe(agent).items():
+            np.testing.assert_array_equal(copy.observe(agent)[k], v)
+        act = planner_action(0, 2.0, 0.3) if agent == "planner" else executor_action(1)
+        env.step(act)
+        copy.step(act)
+        assert copy.rewards == env.rewards
+
+
+# ---------------------------------------------------------------- bad input
+Z = np.zeros(128, np.float32)
+BAD_PLANNER = {
+    "missing key": ({"stop": 0}, "missing"),
+    "unexpected key": ({"stop": 0, "subgoal": [1, 0], "extra": 1}, "unexpected"),
+    "subgoal shape": ({"stop": 0, "subgoal": [1.0, 0.0, 0.0]}, "shape"),
+    "stop shape": ({"stop": [0, 0], "subgoal": [1.0, 0.0]}, "scalar"),
+    "ragged subgoal": ({"stop": 0, "subgoal": [1.0, [2.0, 3.0]]}, "ragged"),
+    "subgoal dtype": ({"stop": 0, "subgoal": np.array(["a", "b"])}, "real numbers"),
+    "complex subgoal": ({"stop": 0, "subgoal": np.array([1 + 1j, 0])}, "real numbers"),
+    "stop dtype": ({"stop": "0", "subgoal": [1.0, 0.0]}, "integer"),
+    "stop not whole": ({"stop": 0.5, "subgoal": [1.0, 0.0]}, "integer"),
+    "stop None": ({"stop": None, "subgoal": [1.0, 0.0]}, "None"),
+    "NaN subgoal": ({"stop": 0, "subgoal": [np.nan, 0.0]}, "NaN"),
+    "inf subgoal": ({"stop": 0, "subgoal": [1.0, np.inf]}, "infinite"),
+    "NaN stop": ({"stop": np.nan, "subgoal": [1.0, 0.0]}, "integer"),
+    "distance too far": ({"stop": 0, "subgoal": [4.5, 0.0]}, r"\[0, 4.0\]"),
+    "negative distance": ({"stop": 0, "subgoal": [-0.1, 0.0]}, r"\[0, 4.0\]"),
+    "direction out of range": ({"stop": 0, "subgoal": [1.0, 3.5]}, "pi"),
+    "stop out of range": ({"stop": 2, "subgoal": [1.0, 0.0]}, "0 or 1"),
+    "executor's format": ({"action": 1, "eli": Z}, "other agent"),
+    "plain int": (1, "expected a dict"),
+    "None while alive": (None, "alive"),
+}
+BAD_EXECUTOR = {
+    "missing key": ({"action": 1}, "missing"),
+    "eli shape": ({"action": 1, "eli": np.zeros(127)}, "shape"),
+    "action shape": ({"action": [1, 1], "eli": Z}, "scalar"),
+    "action not whole": ({"action": 1.5, "eli": Z}, "integer"),
+    "action dtype": ({"action": "1", "eli": Z}, "integer"),
+    "eli dtype": ({"action": 1, "eli": np.array(["x"] * 128)}, "real numbers"),
+    "NaN eli": ({"action": 1, "eli": np.full(128, np.nan)}, "NaN"),
+    "inf eli": ({"action": 1, "eli": np.r_[np.zeros(127), -np.inf]}, "infinite"),
+    "NaN action": ({"action": float("nan"), "eli": Z}, "integer"),
+    "action out of range": ({"action": 4, "eli": Z}, "0..3"),
+    "negative action": ({"action": -1, "eli": Z}, "0..3"),
+    "planner's format": ({"stop": 0, "subgoal": [1.0, 0.0]}, "other agent"),
+    "plain int": (1, "expected a dict"),
+    "None while alive": (None, "alive"),
+}
+FACTORIES = {"env": plex_nav_v0.env, "raw_env": plex_nav_v0.raw_env}
+
+
+@pytest.fixture(scope="module", params=list(FACTORIES))
+def bad_input_env(request):
+    return FACTORIES[request.param](**SMALL)
+
+
+def _reject(env, action, match):
+    before = state_snapshot(env)
+    with pytest.raises(InvalidAction, match=match):
+        env.step(action)
+    assert_same_state(before, state_snapshot(env))
+
+
+@pytest.mark.parametrize("case", list(BAD_PLANNER))
+def test_bad_planner_action(bad_input_env, case):
+    env = bad_input_env
+    env.reset(seed=0)
+    action, match = BAD_PLANNER[case]
+    _reject(env, action, match)
+    env.step(planner_action(0, 1.0, 0.0))  # the next valid action works
+    assert env.agent_selection == "executor"
+    assert env.unwrapped.worlds.planner_decisions[0] == 1
+
+
+@pytest.mark.parametrize("case", list(BAD_EXECUTOR))
+def test_bad_executor_action(bad_input_env, case):
+    env = bad_input_env
+    env.reset(seed=0)
+    env.step(planner_action(0, 2.0, 0.0))
+    action, match = BAD_EXECUTOR[case]
+    _reject(env, action, match)
+    env.step(executor_action(2))
+    assert env.unwrapped.worlds.steps[0] == 1
+
+
+def test_bad_actions_are_value_errors():
+    assert issubclass(InvalidAction, ValueError)
+
+
+def test_actions_after_the_end(bad_input_env):
+    env = bad_input_env
+    env.reset(seed=0)
+    env.step(planner_action(1))
+    _reject(env, planner_action(0, 1.0, 0.0), "only valid action is None")  # a dead agent's step
+    env.step(None)
+    env.step(None)
+    with pytest.raises(InvalidAction, match="after the episode ended"):
+        env.step(None)
+    with pytest.raises(InvalidAction, match="after the episode ended"):
+        env.step(planner_action(0, 1.0, 0.0))
+    env.reset(seed=1)
+    env.step(planner_action(0, 1.0, 0.0))
+    assert env.agent_selection == "executor"
