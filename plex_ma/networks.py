@@ -75,7 +75,7 @@ class Planner(nn.Module):
 
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
-                 map_size: int = 32, init_log_std: float = 0.0):
+                 map_size: int = 32, init_log_std: float = 0.0, init_stop_prob: float = 0.02):
         super().__init__()
         self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
         self.convs = nn.Sequential(
@@ -91,6 +91,9 @@ class Planner(nn.Module):
         # Start with sub-goals half-way out (rho ~ rho_max / 2) rather than at the agent.
         with torch.no_grad():
             self.subgoal_mean.bias[0] = rho_max / 2
+            # An untrained planner that stops half the time ends most episodes after one or
+            # two decisions, before the executor has acted; start with rare stops instead.
+            self.stop_logits.bias[1] = math.log(init_stop_prob / (1 - init_stop_prob))
         self.subgoal_log_std = nn.Parameter(torch.full((2,), float(init_log_std)))
         self.critic = layer_init(nn.Linear(feat, 1), std=1.0)
 
