@@ -75,8 +75,15 @@ fail on the first step; ``black_death_v3`` needs a parallelizable env. Three wra
 repeats an agent's previous action with a probability (each agent its own, planner
 included); and ``frame_skip_v0``, which repeats the acting agent's action up to N times,
 but which was written for round-robin games: when the executor's turn ends during a
-skip it also replays the planner's previous action. ``tests/test_compat.py`` checks all
-of this. Apply the observation and action wrappers to ``compat_env()`` instead.
+skip it also replays the planner's previous action.
+
+On ``compat_env()`` the same three work, and the observation wrappers still do not:
+PettingZoo's action-mask convention makes each observation a ``Dict`` of
+``observation`` and ``action_mask``, which ``frame_stack_v1``, ``normalize_obs_v0``,
+``dtype_v0``, ``agent_indicator_v0`` and the like refuse; ``delay_observations_v0``
+accepts it but delays the mask too, so an agent is shown the other agent's mask (and
+its actions are then rejected). Stack or normalise the ``observation`` vector in the
+trainer. ``tests/test_compat.py`` checks every claim of this section.
 """
 
 from __future__ import annotations
