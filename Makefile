@@ -16,8 +16,13 @@ $(VENV)/.installed: pyproject.toml
 
 setup: $(VENV)/.installed
 
+# The main job: a short PLEX-GRU training with the cpu preset on the default procedural
+# scenes, then a greedy evaluation on 100 fixed validation episodes.
+TRAIN_STEPS ?= 100000
+RUN_DIR ?= runs/quickstart
 train: $(VENV)/.installed
-	$(PY) -m plex_ma.random_agent
+	$(PY) -m plex_ma.train --preset cpu --method plex-gru --total-steps $(TRAIN_STEPS) --run-dir $(RUN_DIR)
+	$(PY) -m plex_ma.evaluate --checkpoint $(RUN_DIR)/latest.pt --split val --episodes 100 --json $(RUN_DIR)/eval_val.json
 
 test: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2 tests

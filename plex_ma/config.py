@@ -91,7 +91,7 @@ PRESETS: dict[str, dict] = {
     "smoke": dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, n_pl=8, num_scenes=4,
                   checkpoint_interval=5, ppo_epochs=2),
     # What learns best per CPU hour on this machine (see README: chosen by measurement).
-    "cpu": dict(total_steps=2_000_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=32),
+    "cpu": dict(total_steps=2_000_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=32, torch_threads=1),
     # The paper's settings: 256 px images, N_PL = 128, 30M steps.
     "paper": dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128),
 }
