@@ -22,6 +22,12 @@ class TrainConfig:
     """plex-gru / plex-smt (the paper's PLEX LSTM / SMT) or the flat baselines ppo-gru / ppo-smt"""
     eli: bool = True
     """pass the executor's ELI to the planner (--no-eli: the paper's ablation)"""
+    planner: Literal["learn", "random"] = "learn"
+    """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, rho_max], direction within +-random_subgoal_angle, never stopping)"""
+    random_subgoal_angle: float = 3.141592653589793
+    """largest |direction| (rad) of the random planner's sub-goals"""
+    planner_warmup_steps: int = 0
+    """PLEX only: environment steps during which random sub-goals stand in for the planner (not trained) while the executor learns"""
     preset: Preset = "cpu"
     """defaults to start from: smoke (< 2 min), cpu (best per CPU hour here), paper (256 px, paper settings)"""
     total_steps: int = 2_000_000
@@ -70,6 +76,8 @@ class TrainConfig:
     """agent actions per episode before truncation"""
     rho_max: float = 4.0
     """largest sub-goal distance (m)"""
+    executor_hidden: int = 512
+    """GRU hidden size of the executor and the flat GRU policy (512 in the paper)"""
     smt_memory: int = 128
     """memory entries kept by the scene-memory transformer (flat PPO-SMT spans the episode up to this cap)"""
     checkpoint_interval: int = 50
@@ -91,7 +99,11 @@ PRESETS: dict[str, dict] = {
     "smoke": dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, n_pl=8, num_scenes=4,
                   checkpoint_interval=5, ppo_epochs=2),
     # What learns best per CPU hour on this machine (see README: chosen by measurement).
-    "cpu": dict(total_steps=2_000_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=32, torch_threads=1),
+    # Deviations from the paper, for a 100x smaller budget: a 128-unit executor GRU (the GRU
+    # is half the update's FLOPs at 512), lr 7e-4, and 100k steps of executor warm-up under
+    # random sub-goals (otherwise the untrained planner learns to stop at once).
+    "cpu": dict(total_steps=2_000_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=32, torch_threads=1,
+                executor_hidden=128, lr=7e-4, planner_warmup_steps=100_000),
     # The paper's settings: 256 px images, N_PL = 128, 30M steps.
     "paper": dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128),
 }
@@ -115,7 +127,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.method in ("plex-gru", "plex-smt", "ppo-gru", "ppo-smt"), "method", "unknown method")
     need(cfg.total_steps > 0, "total_steps", "must be positive")
     need(cfg.num_envs >= 1, "num_envs", "must be >= 1")
-    need(cfg.resolution in range(32, 1025), "resolution", "must be in [32, 1024]")
+    need(cfg.resolution in range(40, 1025), "resolution", "must be in [40, 1024] (the executor's CNN needs 40 px)")
+    need(cfg.executor_hidden >= 8, "executor_hidden", "must be >= 8")
     need(cfg.lr > 0, "lr", "must be positive")
     need(cfg.rollout_steps >= 2, "rollout_steps", "must be >= 2")
     need(cfg.n_pl >= 1, "n_pl", "must be >= 1")
@@ -130,6 +143,9 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.keep_checkpoints >= 1, "keep_checkpoints", "must be >= 1")
     need(cfg.smt_memory >= 1, "smt_memory", "must be >= 1")
     need(cfg.record_interval >= 0, "record_interval", "must be >= 0")
+    need(cfg.planner in ("learn", "random"), "planner", "must be 'learn' or 'random'")
+    need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
+    need(cfg.rho_max > 0.5, "rho_max", "must be above 0.5 m")
     return cfg
 
 

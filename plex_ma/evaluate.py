@@ -132,6 +132,8 @@ def run_episodes(cfg: TrainConfig, nets: dict, split: str = "test", episodes: in
         else:
             out, state = policy.act(obs, state, starts, deterministic=True)
             obs, rew, term, trunc, infos = env.step(out["action"].numpy())
+            if recorder is not None:
+                recorder.step(env, (obs, rew, term, trunc, infos))
             ret += rew
             ended = term | trunc
             finish(infos, np.flatnonzero(ended))

@@ -174,6 +174,17 @@ class PlexTrainer(Trainer):
         self.planner: Planner = self.nets["planner"]
         self.executor: Executor = self.nets["executor"]
         self.restart_memory = self.env.executor_memory_restart
+        self.np_rng = np.random.default_rng(cfg.seed)
+        self.executor_success: deque = deque(maxlen=200)  # reached / turns, over recent turns
+
+    def _random_decisions(self, rows: np.ndarray) -> dict:
+        """The ``--planner random`` stand-in: uniform sub-goals, never a stop, never trained."""
+        k = len(rows)
+        rho = self.np_rng.uniform(0.5, self.cfg.rho_max, k)
+        theta = self.np_rng.uniform(-self.cfg.random_subgoal_angle, self.cfg.random_subgoal_angle, k)
+        sub = torch.as_tensor(np.stack([rho, theta], 1), dtype=torch.float32)
+        return {"stop": torch.zeros(k, dtype=torch.long), "subgoal": sub, "subgoal_env": sub,
+                "log_prob": torch.zeros(k), "value": torch.zeros(k)}
 
     def _planner_decisions(self) -> None:
         """Decide for every world whose turn is the planner's, until none is left."""
@@ -183,6 +194,14 @@ class PlexTrainer(Trainer):
             if len(rows) == 0:
                 return
             obs = {k: v[rows] for k, v in self.pl_obs.items()}
+            if self.cfg.planner == "random" or self.step < self.cfg.planner_warmup_steps:
+                out = self._random_decisions(rows)
+                stop = np.zeros(n, np.int64)
+                sub = np.zeros((n, 2), np.float32)
+                sub[rows] = out["subgoal_env"].numpy()
+                self._after_step(self.env.step(stop=stop, subgoal=sub))
+                self.starts[rows] = True
+                continue
             out = self.planner.act(obs)
             for k, i in enumerate(rows):
                 if self.pending[i] is not None:  # the previous decision's transition is complete
@@ -275,6 +294,7 @@ class PlexTrainer(Trainer):
         self.next_value = np.zeros(n)
         self.ep_return = np.zeros(n)
         self.starts = np.ones(n, np.bool_)
+        self.turn_d0 = np.zeros(n)
         state = self.executor.initial_state(n)
         bar = self._progress()
         last_log = {}
@@ -289,6 +309,8 @@ class PlexTrainer(Trainer):
                 if t == 0:
                     buf.initial_state = state.clone()
                 starts = self.starts.copy()
+                # sub-goal distance at the start of each turn (for the executor's success rate)
+                self.turn_d0[starts] = self.ex_obs["subgoal"][starts, 0]
                 out, state = self.executor.act(self.ex_obs, state, starts)
                 action = out["action"].numpy()
                 t2 = time.perf_counter()
@@ -312,6 +334,9 @@ class PlexTrainer(Trainer):
                         values=out["value"], rewards=torch.as_tensor(res.rewards[:, 1]),
                         dones=torch.as_tensor(res.executor_stopped), truncated=torch.as_tensor(trunc),
                         starts=torch.as_tensor(starts), bootstrap_values=torch.as_tensor(boot))
+                # Success over the turns whose sub-goal was not already within reach at the start.
+                counted = res.executor_turn_end & (self.turn_d0 >= self.env.config.subgoal_radius)
+                self.executor_success.extend(res.executor_reached[counted].tolist())
                 self.starts[:] = False
                 self.starts |= res.executor_turn_end & self.restart_memory
                 self.starts |= ended
@@ -329,7 +354,9 @@ class PlexTrainer(Trainer):
             metrics = {f"learner/executor_{k}": v for k, v in
                        ppo_update(self.executor, buf, self.opts["executor"], self.ppo, self.gen).items()}
             self.updates["executor"] += 1
-            if self._planner_ready():
+            if self.executor_success:
+                metrics["metrics/executor_success"] = float(np.mean(self.executor_success))
+            if self.cfg.planner == "learn" and self._planner_ready():
                 metrics |= self._update_planner()
             timing["update"] += time.perf_counter() - t4
             elapsed = time.perf_counter() - t_start
@@ -343,6 +370,10 @@ class PlexTrainer(Trainer):
                 last_log = metrics
             if self.updates["executor"] % cfg.checkpoint_interval == 0:
                 self.save()
+            if cfg.record_interval and self.updates["executor"] % cfg.record_interval == 0:
+                from plex_ma.viz.record import record_training_episode  # rerun recording hook
+
+                record_training_episode(self)
             if bar is not None:
                 bar.update(min(self.step, cfg.total_steps) - bar.n)
                 self._postfix(bar, sps)
@@ -412,6 +443,10 @@ class FlatTrainer(Trainer):
                 last_log = metrics
             if self.updates["policy"] % cfg.checkpoint_interval == 0:
                 self.save()
+            if cfg.record_interval and self.updates["policy"] % cfg.record_interval == 0:
+                from plex_ma.viz.record import record_training_episode  # rerun recording hook
+
+                record_training_episode(self)
             if bar is not None:
                 bar.update(min(self.step, cfg.total_steps) - bar.n)
                 self._postfix(bar, sps)

@@ -33,8 +33,20 @@ def procgen_scenes(split: str, num_scenes: int | None = None) -> list[Scene]:
     return [generate_house(procgen_seed(split, i), scene_id=f"procgen-{split}-{i:05d}") for i in range(n)]
 
 
+def open_room_scenes(split: str, num_scenes: int | None = None) -> list[Scene]:
+    """Empty rectangular rooms (8-10 m), for debugging and for training the executor alone."""
+    out = []
+    for i in range(1 if num_scenes is None else num_scenes):
+        rng = np.random.default_rng(procgen_seed(split, i))
+        w, h = (round(float(rng.uniform(8.0, 10.0)), 1) for _ in range(2))
+        walls = [(0, 0, w, 0), (w, 0, w, h), (w, h, 0, h), (0, h, 0, 0)]
+        out.append(Scene(scene_id=f"open-room-{split}-{i:05d}", walls=np.array(walls), source="open-room"))
+    return out
+
+
 # A source maps (split, num_scenes) to scenes. Loaders for other sources add themselves.
-SOURCES: dict[str, Callable[[str, int | None], list[Scene]]] = {"procgen": procgen_scenes}
+SOURCES: dict[str, Callable[[str, int | None], list[Scene]]] = {"procgen": procgen_scenes,
+                                                                "open-room": open_room_scenes}
 
 
 def check_split(split: str) -> None:
