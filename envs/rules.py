@@ -244,6 +244,7 @@ class PlexStep:
     acted: np.ndarray  # (N,) int8: who acted this step (PLANNER / EXECUTOR, -1: nothing)
     executor_turn_end: np.ndarray  # (N,) bool: the executor's turn ended (STOP, n_ex or episode end)
     executor_stopped: np.ndarray  # (N,) bool: ... because it chose STOP
+    executor_reached: np.ndarray  # (N,) bool: ... with a STOP within subgoal_radius (its success)
     terminated: np.ndarray  # (N,) bool: episode ended by a planner stop
     truncated: np.ndarray  # (N,) bool: episode ended by max_steps
 
@@ -348,6 +349,7 @@ class PlexWorlds(_Worlds):
         out = PlexStep(
             rewards=np.zeros((n, 2), np.float32), acted=np.full(n, -1, np.int8),
             executor_turn_end=np.zeros(n, np.bool_), executor_stopped=np.zeros(n, np.bool_),
+            executor_reached=np.zeros(n, np.bool_),
             terminated=np.zeros(n, np.bool_), truncated=np.zeros(n, np.bool_))
         if len(pl):
             self._planner_step(pl, stop_a, sg, out)
@@ -408,7 +410,8 @@ class PlexWorlds(_Worlds):
         self.subgoal_dist[rows] = d_sub
         stopped = action == STOP
         ex_r = progress_reward(d_sub_prev, d_sub, collided, cfg)
-        ex_r += cfg.subgoal_reward * (stopped & (d_sub < cfg.subgoal_radius))
+        reached = stopped & (d_sub < cfg.subgoal_radius)
+        ex_r += cfg.subgoal_reward * reached
         pl_r = progress_reward(d_goal_prev, sim.distance_to_goal[rows], collided, cfg)
         out.rewards[rows, EXECUTOR] += ex_r.astype(np.float32)
         out.rewards[rows, PLANNER] += pl_r.astype(np.float32)
@@ -420,6 +423,7 @@ class PlexWorlds(_Worlds):
         turn_end = stopped | (self.turn_steps[rows] >= cfg.n_ex)
         trunc = self.steps[rows] >= cfg.max_steps
         out.executor_stopped[rows] = stopped
+        out.executor_reached[rows] = reached
         out.executor_turn_end[rows] = turn_end | trunc
         self.turn[rows[turn_end]] = PLANNER
         tr = rows[trunc]

@@ -35,6 +35,7 @@ class PlexVecStep:
     acted: np.ndarray  # (N,) int8: who acted in this step
     executor_turn_end: np.ndarray  # (N,) bool: the executor's turn ended in this step
     executor_stopped: np.ndarray  # (N,) bool: ... because it chose STOP
+    executor_reached: np.ndarray  # (N,) bool: ... within the sub-goal radius (its success)
     terminated: np.ndarray  # (N,) bool: the episode ended by a planner stop (then reset)
     truncated: np.ndarray  # (N,) bool: the episode ended by max_steps (then reset)
     episode_infos: list  # one info dict (with success, spl) per world whose episode ended
@@ -92,7 +93,8 @@ class PlexVectorEnv:
             w.reset_rows(ended)
         return PlexVecStep(turn=w.turn.copy(), planner_obs=self._planner_obs(), executor_obs=self._executor_obs(),
                            rewards=out.rewards, acted=out.acted, executor_turn_end=out.executor_turn_end,
-                           executor_stopped=out.executor_stopped, terminated=out.terminated,
+                           executor_stopped=out.executor_stopped, executor_reached=out.executor_reached,
+                           terminated=out.terminated,
                            truncated=out.truncated, episode_infos=infos, final_executor_obs=final)
 
     def info(self, i: int) -> dict:
