@@ -1,0 +1,202 @@
+"""The trainer, the CLIs, checkpoints and learning (each test can fail)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from plex_ma.config import TrainConfig, parse, preset_defaults, validate
+from plex_ma.evaluate import main as evaluate_main
+from plex_ma.trainers.checkpoint import CheckpointError, atomic_save, find_resumable, load_checkpoint, save_checkpoint
+from plex_ma.trainers.plex import PlexTrainer, make_trainer
+
+
+def tiny(tmp_path, **kw) -> TrainConfig:
+    """A configuration small enough for a few seconds of training."""
+    cfg = dataclasses.replace(preset_defaults("smoke"), run_dir=str(tmp_path / "run"), total_steps=96, num_envs=2,
+                              rollout_steps=16, n_pl=2, num_scenes=2, executor_hidden=32, smt_memory=16,
+                              progress=False, ppo_epochs=1, num_minibatches=1, torch_threads=1)
+    return validate(dataclasses.replace(cfg, **kw))
+
+
+@pytest.mark.parametrize("method,eli", [("plex-gru", True), ("plex-gru", False), ("plex-smt", True),
+                                        ("ppo-gru", True), ("ppo-smt", True)])
+def test_smoke_training_every_method(tmp_path, method, eli):
+    cfg = tiny(tmp_path, method=method, eli=eli)
+    trainer = make_trainer(cfg)
+    trainer.train()
+    trainer.close()
+    state = load_checkpoint(tmp_path / "run" / "latest.pt")
+    assert state["config"]["method"] == method and state["config"]["eli"] == eli
+    assert state["step"] >= cfg.total_steps
+    lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    keys = set().union(*lines)
+    assert "perf/fps" in keys
+    prefix = "learner/executor_" if method.startswith("plex") else "learner/"
+    for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction", "explained_variance",
+              "grad_norm"):
+        assert prefix + k in keys
+
+
+def test_resume_restores_optimizer_and_step(tmp_path, capsys):
+    cfg = tiny(tmp_path)
+    t1 = make_trainer(cfg)
+    t1.train()
+    t1.close()
+    saved = load_checkpoint(tmp_path / "run" / "latest.pt")
+    t2 = make_trainer(dataclasses.replace(cfg, total_steps=cfg.total_steps * 2))
+    assert "resuming" in capsys.readouterr().out
+    assert t2.step == saved["step"] and t2.updates == saved["updates"]
+    for k, opt in t2.opts.items():
+        a, b = opt.state_dict()["state"], saved["optimizers"][k]["state"]
+        assert a.keys() == b.keys() and len(a) > 0
+        for i in a:
+            assert torch.equal(a[i]["exp_avg"], b[i]["exp_avg"])
+    for k, m in t2.nets.items():
+        for name, p in m.state_dict().items():
+            assert torch.equal(p, saved["models"][k][name])
+    t2.train()
+    t2.close()
+    assert load_checkpoint(tmp_path / "run" / "latest.pt")["step"] >= 2 * cfg.total_steps
+
+
+def test_resume_refuses_another_method(tmp_path):
+    cfg = tiny(tmp_path)
+    t = make_trainer(cfg)
+    t.train()
+    t.close()
+    with pytest.raises(CheckpointError, match="method"):
+        make_trainer(dataclasses.replace(cfg, method="ppo-gru"))
+
+
+def test_same_seed_same_first_update(tmp_path):
+    params = []
+    for run in ("a", "b"):
+        cfg = tiny(tmp_path / run, total_steps=32)
+        t = make_trainer(cfg, log=False)
+        t.train()
+        params.append({k: v.clone() for k, v in t.nets["executor"].state_dict().items()})
+    assert all(torch.equal(params[0][k], params[1][k]) for k in params[0])
+
+
+def test_corrupt_latest_falls_back_to_previous(tmp_path):
+    run = tmp_path / "run"
+    save_checkpoint(run, {"format": 1, "config": {}, "step": 1}, 1)
+    save_checkpoint(run, {"format": 1, "config": {}, "step": 2}, 2)
+    data = (run / "latest.pt").read_bytes()
+    (run / "latest.pt").write_bytes(data[: len(data) // 2])  # truncated
+    with pytest.warns(UserWarning, match="latest.pt"):
+        state, path = find_resumable(run)
+    assert state["step"] == 2 and path.name == "ckpt_000002.pt"
+    for p in run.glob("*.pt"):
+        p.write_bytes(b"garbage")
+    with pytest.raises(CheckpointError, match="corrupt"), pytest.warns(UserWarning):
+        find_resumable(run)
+    with pytest.raises(CheckpointError, match="cannot be loaded"):
+        load_checkpoint(run / "latest.pt")
+
+
+def test_failed_save_keeps_previous_checkpoint(tmp_path, monkeypatch):
+    path = tmp_path / "latest.pt"
+    atomic_save({"format": 1, "config": {}, "step": 7}, path)
+
+    def boom(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", boom)
+    with pytest.raises(OSError):
+        atomic_save({"format": 1, "config": {}, "step": 8}, path)
+    monkeypatch.undo()
+    assert load_checkpoint(path)["step"] == 7
+    assert [p.name for p in tmp_path.iterdir()] == ["latest.pt"]  # no temporary left behind
+
+
+def test_checkpoint_is_loaded_with_weights_only(tmp_path):
+    class Evil:
+        def __reduce__(self):
+            return (os.system, ("echo pwned",))
+
+    torch.save({"format": 1, "config": {}, "x": Evil()}, tmp_path / "evil.pt")
+    with pytest.raises(CheckpointError):
+        load_checkpoint(tmp_path / "evil.pt")
+
+
+def test_planner_update_leaves_executor_untouched(tmp_path):
+    cfg = tiny(tmp_path, total_steps=160, n_pl=1)
+    t = PlexTrainer(cfg, log=False)
+    before = {k: v.clone() for k, v in t.executor.state_dict().items()}
+    calls = []
+    real = t._update_planner
+
+    def spy():
+        snap = {k: v.clone() for k, v in t.executor.state_dict().items()}
+        for p in t.executor.parameters():
+            p.grad = None
+        out = real()
+        calls.append(all(torch.equal(snap[k], v) for k, v in t.executor.state_dict().items()))
+        assert all(p.grad is None or not p.grad.any() for p in t.executor.parameters())
+        return out
+
+    t._update_planner = spy
+    t.train()
+    assert calls and all(calls), "a planner update changed the executor"
+    assert any(not torch.equal(before[k], v) for k, v in t.executor.state_dict().items())  # executor did learn
+
+
+def test_cli_help_and_bad_config(capsys):
+    with pytest.raises(SystemExit) as e:
+        parse(["--help"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    assert "--method" in out and "--no-eli" in out and "--preset" in out and "--total-steps" in out
+    with pytest.raises(ValueError, match="num-envs"):
+        parse(["--preset", "smoke", "--num-envs", "0"])
+    cfg = parse(["--preset", "smoke", "--num-envs", "3"])
+    assert cfg.num_envs == 3 and cfg.total_steps == preset_defaults("smoke").total_steps
+
+
+def test_evaluate_cli_writes_json(tmp_path):
+    cfg = tiny(tmp_path)
+    t = make_trainer(cfg)
+    t.train()
+    t.close()
+    out = tmp_path / "eval.json"
+    evaluate_main(["--checkpoint", str(tmp_path / "run" / "latest.pt"), "--split", "val", "--episodes", "3",
+                   "--num-envs", "2", "--json", str(out)])
+    res = json.loads(out.read_text())
+    for part in (res, res["close"], res["far"]):
+        for k in ("success", "spl", "reward", "distance_to_goal", "collisions", "episodes"):
+            assert k in part
+    assert res["episodes"] == 3 == res["close"]["episodes"] + res["far"]["episodes"]
+    assert len({r["episode_id"] for r in res["per_episode"]}) == 3
+
+
+def test_evaluate_rejects_a_bad_checkpoint(tmp_path, capsys):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"\x00" * 100)
+    with pytest.raises(SystemExit) as e:
+        evaluate_main(["--checkpoint", str(bad), "--episodes", "1"])
+    assert e.value.code == 2 and "cannot be loaded" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_executor_alone_learns_to_reach_subgoals(tmp_path):
+    """In an open room, under random sub-goals 0.5-1.5 m away within +-1 rad, the executor's
+    success (STOP within 0.5 m, over turns not already within reach) rises from about 0."""
+    cfg = dataclasses.replace(
+        preset_defaults("smoke"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1,
+        planner="random", rho_max=1.5, random_subgoal_angle=1.0, resolution=64, executor_hidden=128, lr=1e-3,
+        max_steps=40, total_steps=24_000, num_envs=8, rollout_steps=32, ppo_epochs=4, num_minibatches=2,
+        progress=False, torch_threads=1, checkpoint_interval=1000)
+    t = make_trainer(validate(cfg))
+    t.train()
+    t.close()
+    lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    curve = [d["metrics/executor_success"] for d in lines if "metrics/executor_success" in d]
+    assert curve[0] < 0.3, curve[:5]
+    assert np.mean(curve[-3:]) >= 0.6, curve[-10:]
