@@ -118,7 +118,7 @@ def compat_env(image_size: int = 32, subgoal_distances=None, subgoal_directions:
 
     build_args = dict(image_size=image_size, subgoal_distances=subgoal_distances,
                       subgoal_directions=subgoal_directions, **config)
-    if config.get("eli", False) is not False:
+    if config.get("eli", False):
         raise ValueError("compat_env: the ELI channel is off in the compat env (a Discrete action cannot "
                          f"carry it); leave eli out or pass eli=False, got eli={config['eli']!r}")
     config["eli"] = False

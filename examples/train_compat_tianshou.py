@@ -183,23 +183,54 @@ class Critic(nn.Module):
 
 
 # ---------------------------------------------------------------- training
-def make_env(config: dict, seed: int) -> PettingZooEnv:
-    env = PettingZooEnv(plex_nav_v0.compat_env(**config))
+class LoggedPettingZooEnv(PettingZooEnv):
+    """Tianshou's wrapper, plus a log of each finished episode: every agent's return (the
+    sum of its per-step rewards, all of them), success and length."""
+
+    def __init__(self, env, log: list | None = None):
+        self.log = log
+        self._returns = np.zeros(2)
+        self._length = 0
+        super().__init__(env)
+
+    def reset(self, *args, **kwargs):
+        self._returns[:] = 0.0
+        self._length = 0
+        return super().reset(*args, **kwargs)
+
+    def step(self, action):
+        obs, rew, term, trunc, info = super().step(action)
+        self._returns += [self.env.rewards.get(a, 0.0) for a in self.agents]
+        self._length += 1
+        if (term or trunc) and self.log is not None:
+            self.log.append({"planner": self._returns[0], "executor": self._returns[1], "length": self._length,
+                             "success": float(info.get("success", 0.0))})
+        return obs, rew, term, trunc, info
+
+
+def make_env(config: dict, seed: int, log: list | None = None) -> PettingZooEnv:
+    env = LoggedPettingZooEnv(plex_nav_v0.compat_env(**config), log)
     env.reset(seed=seed)
     return env
 
 
-def build(config: dict, num_envs: int, seed: int, lr: float = 3e-4):
+def build(config: dict, num_envs: int, seed: int, lr: float = 3e-4, log: list | None = None):
+    """The multi-agent PPO and its train and test envs; finished training episodes go to ``log``."""
     probe = make_env(config, seed)
     algorithms = []
     for agent in probe.agents:
         actor = Actor(agent, probe.action_space.n)
         policy = DiscreteActorPolicy(actor=actor, action_space=probe.action_space,
                                      observation_space=probe.observation_space)
+        # No advantage normalisation: an agent may have a single transition in an update
+        # (a planner that stops at once leaves the executor nothing), and the std of one
+        # advantage is NaN. The planner gets a larger entropy bonus: stopping at once is a
+        # tempting early optimum (return 0 against the slack of a poor executor).
         algorithms.append(PPO(policy=policy, critic=Critic(agent), optim=AdamOptimizerFactory(lr=lr),
-                              gamma=0.99, gae_lambda=0.95, ent_coef=0.01, max_grad_norm=0.5))
+                              gamma=0.99, gae_lambda=0.95, ent_coef=0.05 if agent == "planner" else 0.01,
+                              max_grad_norm=0.5, advantage_normalization=False))
     algorithm = TurnCreditPPO(algorithms=algorithms, env=probe)
-    train_envs = DummyVectorEnv([lambda i=i: make_env(config, seed + 1 + i) for i in range(num_envs)])
+    train_envs = DummyVectorEnv([lambda i=i: make_env(config, seed + 1 + i, log) for i in range(num_envs)])
     test_envs = DummyVectorEnv([lambda i=i: make_env(config, seed + 1000 + i) for i in range(num_envs)])
     return algorithm, train_envs, test_envs
 
@@ -231,24 +262,36 @@ def main(argv: list[str] | None = None) -> dict:
     torch.manual_seed(a.seed)
     torch.set_num_threads(1)
     config = dict(resolution=a.resolution, num_scenes=a.num_scenes, max_steps=a.max_steps)
-    algorithm, train_envs, test_envs = build(config, a.num_envs, a.seed, a.lr)
 
+    log: list = []
+    algorithm, train_envs, test_envs = build(config, a.num_envs, a.seed, a.lr, log)
     before = evaluate(algorithm, test_envs, a.eval_episodes)
     print("before training:", before)
     t0 = time.time()
     buffer = VectorReplayBuffer(max(a.steps_per_collect, 1000) * 2, a.num_envs)
     train_collector = Collector(algorithm, train_envs, buffer)
-    result = algorithm.run_training(OnPolicyTrainerParams(
+    trainer = algorithm.create_trainer(OnPolicyTrainerParams(
         training_collector=train_collector, test_collector=None, max_epochs=a.epochs,
         epoch_num_steps=a.steps_per_epoch, collection_step_num_env_steps=a.steps_per_collect,
-        update_step_num_repetitions=4, batch_size=256,
+        # Each agent's whole share of the collected steps is one batch, used 6 times.
+        update_step_num_repetitions=6, batch_size=None,
         multi_agent_return_reduction=lambda r: r[:, 0],  # log the planner's return
         verbose=False, show_progress=False))
+    trainer.reset()
+    for epoch in range(a.epochs):
+        seen = len(log)
+        trainer.execute_epoch()
+        done = log[seen:]
+        if done:
+            print(f"epoch {epoch + 1}: {len(done)} episodes, mean return planner "
+                  f"{np.mean([d['planner'] for d in done]):+.2f} executor {np.mean([d['executor'] for d in done]):+.2f}, "
+                  f"success {np.mean([d['success'] for d in done]):.2f}, length {np.mean([d['length'] for d in done]):.0f}")
     seconds = time.time() - t0
+    steps = int(trainer._env_step)
     after = evaluate(algorithm, test_envs, a.eval_episodes)
     print("after training: ", after)
-    print(f"{result.train_step} AEC steps in {seconds:.0f} s ({result.train_step / seconds:.0f} steps/s)")
-    return {"before": before, "after": after, "env_steps": int(result.train_step), "seconds": seconds}
+    print(f"{steps} AEC steps in {seconds:.0f} s ({steps / seconds:.0f} steps/s)")
+    return {"before": before, "after": after, "env_steps": steps, "seconds": seconds, "episodes": log}
 
 
 if __name__ == "__main__":
