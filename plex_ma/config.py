@@ -92,6 +92,8 @@ class TrainConfig:
     """torch intra-op threads (0: torch's default)"""
     progress: bool = True
     """show a progress bar"""
+    dist_timeout: float = 300.0
+    """distributed runs (torchrun): seconds a worker waits for the others (start-up, each all-reduce) before it stops with an error"""
 
 
 PRESETS: dict[str, dict] = {
@@ -99,11 +101,12 @@ PRESETS: dict[str, dict] = {
     "smoke": dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, n_pl=8, num_scenes=4,
                   checkpoint_interval=5, ppo_epochs=2),
     # What learns best per CPU hour on this machine (see README: chosen by measurement).
-    # Deviations from the paper, for a 100x smaller budget: a 128-unit executor GRU (the GRU
-    # is half the update's FLOPs at 512), lr 7e-4, and 100k steps of executor warm-up under
-    # random sub-goals (otherwise the untrained planner learns to stop at once).
+    # Deviations from the paper, for a budget 100x smaller: a 128-unit executor GRU (at 512
+    # the GRU is half of the update's FLOPs) and 100k steps of executor warm-up under random
+    # sub-goals (an untrained planner otherwise learns at once to stop: an unsuccessful
+    # stop costs nothing, and every executor step costs slack).
     "cpu": dict(total_steps=2_000_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=32, torch_threads=1,
-                executor_hidden=128, lr=7e-4, planner_warmup_steps=100_000),
+                executor_hidden=128, planner_warmup_steps=100_000),
     # The paper's settings: 256 px images, N_PL = 128, 30M steps.
     "paper": dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128),
 }
@@ -146,6 +149,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.planner in ("learn", "random"), "planner", "must be 'learn' or 'random'")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.rho_max > 0.5, "rho_max", "must be above 0.5 m")
+    need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")
     return cfg
 
 

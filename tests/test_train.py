@@ -186,11 +186,12 @@ def test_evaluate_rejects_a_bad_checkpoint(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_executor_alone_learns_to_reach_subgoals(tmp_path):
-    """In an open room, under random sub-goals 0.5-1.5 m away within +-1 rad, the executor's
-    success (STOP within 0.5 m, over turns not already within reach) rises from about 0."""
+    """In an open room, under random sub-goals 0.5-1.5 m away within +-0.5 rad, the executor's
+    success (STOP within 0.5 m, over turns not already within reach) rises from about 0.1
+    (a random executor) to at least 0.6."""
     cfg = dataclasses.replace(
         preset_defaults("smoke"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1,
-        planner="random", rho_max=1.5, random_subgoal_angle=1.0, resolution=64, executor_hidden=128, lr=1e-3,
+        planner="random", rho_max=1.5, random_subgoal_angle=0.5, resolution=64, executor_hidden=128, lr=1e-3,
         max_steps=40, total_steps=24_000, num_envs=8, rollout_steps=32, ppo_epochs=4, num_minibatches=2,
         progress=False, torch_threads=1, checkpoint_interval=1000)
     t = make_trainer(validate(cfg))

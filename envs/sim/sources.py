@@ -1,6 +1,7 @@
 """Scene sources and splits: which scenes a ``scenes=`` / ``split=`` pair means.
 
-``scenes="procgen"`` (the default) gives procedural houses. Each split draws from its own
+``scenes="procgen"`` (the default) gives procedural houses; ``"r2v"`` the real floor plans;
+a directory, the plans in it; ``"procgen+r2v"`` a mix (``num_scenes`` applies to each part). Each split draws from its own
 seed stream, so the train, val and test splits never share a house; by default they
 hold 72, 16 and 16 scenes (the paper's 72 train / 16 test shape), and any number can be
 asked for. Other sources (real floor plans) register themselves in ``SOURCES``.
@@ -59,6 +60,11 @@ def load_scenes(scenes: str = "procgen", split: str = "train", num_scenes: int |
     check_split(split)
     if num_scenes is not None and (not isinstance(num_scenes, (int, np.integer)) or num_scenes < 1):
         raise ValueError(f"num_scenes must be a positive integer or None, got {num_scenes!r}")
+    if "+" in scenes:  # a mix, e.g. "procgen+r2v": each part's scenes of this split
+        parts = [p for p in scenes.split("+") if p]
+        if len(parts) < 2:
+            raise ValueError(f"scene mix {scenes!r} needs at least two sources joined by '+'")
+        return [sc for p in parts for sc in load_scenes(p, split, num_scenes)]
     if scenes in SOURCES:
         return SOURCES[scenes](split, num_scenes)
     resolver = _directory_resolver()
