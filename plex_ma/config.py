@@ -23,8 +23,10 @@ class TrainConfig:
     eli: bool = True
     """pass the executor's ELI to the planner (--no-eli: the paper's ablation)"""
     planner: Literal["learn", "random"] = "learn"
-    """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, rho_max], direction within +-random_subgoal_angle, never stopping)"""
-    random_subgoal_angle: float = 3.141592653589793
+    """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping)"""
+    random_subgoal_distance: float = 2.0
+    """largest distance (m) of the random planner's sub-goals (at most rho_max)"""
+    random_subgoal_angle: float = 1.0
     """largest |direction| (rad) of the random planner's sub-goals"""
     planner_warmup_steps: int = 0
     """PLEX only: environment steps during which random sub-goals stand in for the planner (not trained) while the executor learns"""
@@ -149,6 +151,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.planner in ("learn", "random"), "planner", "must be 'learn' or 'random'")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.rho_max > 0.5, "rho_max", "must be above 0.5 m")
+    need(0.5 < cfg.random_subgoal_distance <= cfg.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")
     return cfg
 

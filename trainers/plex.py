@@ -35,7 +35,8 @@ from plex_ma.envs.rules import PLANNER
 from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
 from plex_ma.networks import Executor, FlatPolicy, Planner
 
-from .checkpoint import find_resumable, save_checkpoint
+from . import distributed
+from .checkpoint import save_checkpoint
 from .logger import MetricLogger
 from .ppo import PPOConfig, RolloutBuffer, compute_gae, ppo_update
 
@@ -84,6 +85,7 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, log: bool = True):
         self.cfg = cfg
+        self.dist = distributed.context()  # rank, world size; single-process unless torchrun started a group
         if cfg.torch_threads:
             torch.set_num_threads(cfg.torch_threads)
         torch.manual_seed(cfg.seed)
@@ -96,14 +98,16 @@ class Trainer:
         self.step = 0  # environment steps (agent actions) so far
         self.updates = {k: 0 for k in self.nets}
         self.stats = EpisodeStats()
-        self.logger = MetricLogger(cfg.run_dir) if log else None
+        self.logger = MetricLogger(cfg.run_dir) if log and self.dist.is_main else None  # rank 0 writes
         self.resumed_from = None
-        found = find_resumable(cfg.run_dir)
+        found = distributed.find_resumable(cfg.run_dir)  # rank 0 reads, every worker gets it
         if found is not None:
             state, path = found
             self.load_state(state)
             self.resumed_from = path
-            print(f"resuming from {path} at step {self.step:,}")
+            if self.dist.is_main:
+                print(f"resuming from {path} at step {self.step:,}")
+        distributed.sync_start(self)  # distributed: rank 0's parameters everywhere, samplers seeded apart
 
     # ---------------------------------------------------------------- checkpoints
     def state(self) -> dict:
@@ -136,6 +140,8 @@ class Trainer:
         self.gen.set_state(state["sampler_rng"])
 
     def save(self) -> None:
+        if not self.dist.is_main:
+            return
         n = sum(self.updates.values())
         save_checkpoint(self.cfg.run_dir, self.state(), n, keep=self.cfg.keep_checkpoints)
 
@@ -149,7 +155,7 @@ class Trainer:
             self.logger.close()
 
     def _progress(self):
-        if not self.cfg.progress:
+        if not self.cfg.progress or not self.dist.is_main:
             return None
         from tqdm import tqdm
 
@@ -169,18 +175,18 @@ class PlexTrainer(Trainer):
 
     def __init__(self, cfg: TrainConfig, log: bool = True):
         super().__init__(cfg, log)
-        self.env = PlexVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["executor"],
+        self.env = PlexVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["executor"] + self.dist.seed_offset,
                                  n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, **env_kwargs(cfg))
         self.planner: Planner = self.nets["planner"]
         self.executor: Executor = self.nets["executor"]
         self.restart_memory = self.env.executor_memory_restart
-        self.np_rng = np.random.default_rng(cfg.seed)
+        self.np_rng = np.random.default_rng(cfg.seed + self.dist.seed_offset)
         self.executor_success: deque = deque(maxlen=200)  # reached / turns, over recent turns
 
     def _random_decisions(self, rows: np.ndarray) -> dict:
         """The ``--planner random`` stand-in: uniform sub-goals, never a stop, never trained."""
         k = len(rows)
-        rho = self.np_rng.uniform(0.5, self.cfg.rho_max, k)
+        rho = self.np_rng.uniform(0.5, self.cfg.random_subgoal_distance, k)
         theta = self.np_rng.uniform(-self.cfg.random_subgoal_angle, self.cfg.random_subgoal_angle, k)
         sub = torch.as_tensor(np.stack([rho, theta], 1), dtype=torch.float32)
         return {"stop": torch.zeros(k, dtype=torch.long), "subgoal": sub, "subgoal_env": sub,
@@ -243,7 +249,8 @@ class PlexTrainer(Trainer):
         return np.array([p is not None for p in self.pending])
 
     def _planner_ready(self) -> bool:
-        return sum(len(c) for c in self.chains) >= self.cfg.n_pl * self.cfg.num_envs
+        # distributed: all workers update the planner together, once every one of them is ready
+        return distributed.all_true(sum(len(c) for c in self.chains) >= self.cfg.n_pl * self.cfg.num_envs)
 
     def _update_planner(self) -> dict:
         """GAE along each world's chain of decisions, then PPO on the flattened batch."""
@@ -288,7 +295,7 @@ class PlexTrainer(Trainer):
     def train(self) -> dict:
         cfg = self.cfg
         n, T = cfg.num_envs, cfg.rollout_steps
-        self.turn, self.pl_obs, self.ex_obs = self.env.reset(seed=cfg.seed + self.step)
+        self.turn, self.pl_obs, self.ex_obs = self.env.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
         self.pending = [None] * n
         self.chains = [[] for _ in range(n)]
         self.next_value = np.zeros(n)
@@ -341,7 +348,7 @@ class PlexTrainer(Trainer):
                 self.starts |= res.executor_turn_end & self.restart_memory
                 self.starts |= ended
                 self._after_step(res)
-                self.step += n
+                self.step += n * self.dist.world_size  # total over all workers
                 timing["inference"] += (t2 - t1) + (time.perf_counter() - t3)
                 timing["sim"] += (t1 - t0) + (t3 - t2)
             # V(o_T) for worlds still inside a turn (their memory continues)
@@ -370,13 +377,15 @@ class PlexTrainer(Trainer):
                 last_log = metrics
             if self.updates["executor"] % cfg.checkpoint_interval == 0:
                 self.save()
-            if cfg.record_interval and self.updates["executor"] % cfg.record_interval == 0:
+            if cfg.record_interval and self.updates["executor"] % cfg.record_interval == 0 and self.dist.is_main:
                 from plex_ma.viz.record import record_training_episode  # rerun recording hook
 
                 record_training_episode(self)
             if bar is not None:
                 bar.update(min(self.step, cfg.total_steps) - bar.n)
                 self._postfix(bar, sps)
+            if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
+                break
         self.save()
         if bar is not None:
             bar.close()
@@ -388,13 +397,14 @@ class FlatTrainer(Trainer):
 
     def __init__(self, cfg: TrainConfig, log: bool = True):
         super().__init__(cfg, log)
-        self.env = PointNavVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["policy"], **env_kwargs(cfg))
+        self.env = PointNavVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["policy"] + self.dist.seed_offset,
+                                     **env_kwargs(cfg))
         self.policy: FlatPolicy = self.nets["policy"]
 
     def train(self) -> dict:
         cfg = self.cfg
         n, T = cfg.num_envs, cfg.rollout_steps
-        obs = self.env.reset(seed=cfg.seed + self.step)
+        obs = self.env.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
         state = self.policy.initial_state(n)
         starts = np.ones(n, np.bool_)
         ep_return = np.zeros(n)
@@ -422,7 +432,7 @@ class FlatTrainer(Trainer):
                     self.stats.add(infos[k], float(ep_return[i]))
                     ep_return[i] = 0.0
                 starts = ended.copy()
-                self.step += n
+                self.step += n * self.dist.world_size  # total over all workers
                 timing["inference"] += t1 - t0
                 timing["sim"] += t2 - t1
             t3 = time.perf_counter()
@@ -443,13 +453,15 @@ class FlatTrainer(Trainer):
                 last_log = metrics
             if self.updates["policy"] % cfg.checkpoint_interval == 0:
                 self.save()
-            if cfg.record_interval and self.updates["policy"] % cfg.record_interval == 0:
+            if cfg.record_interval and self.updates["policy"] % cfg.record_interval == 0 and self.dist.is_main:
                 from plex_ma.viz.record import record_training_episode  # rerun recording hook
 
                 record_training_episode(self)
             if bar is not None:
                 bar.update(min(self.step, cfg.total_steps) - bar.n)
                 self._postfix(bar, sps)
+            if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
+                break
         self.save()
         if bar is not None:
             bar.close()
