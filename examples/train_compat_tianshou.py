@@ -59,6 +59,7 @@ except ImportError as e:  # pragma: no cover - the message is the point
     raise SystemExit(f"this example needs Tianshou 2.x: pip install tianshou ({e})") from None
 
 AGENTS = ("planner", "executor")
+GOAL_DISTANCE_INDEX = 2 + 2 * 32 * 32  # in the planner's compat observation: one-hot id, ego map, goal
 
 
 # ---------------------------------------------------------------- reward credit
@@ -187,16 +188,26 @@ class LoggedPettingZooEnv(PettingZooEnv):
     """Tianshou's wrapper, plus a log of each finished episode: every agent's return (the
     sum of its per-step rewards, all of them), success and length."""
 
-    def __init__(self, env, log: list | None = None):
+    def __init__(self, env, log: list | None = None, stop_within: float | None = None):
         self.log = log
+        self.stop_within = stop_within
         self._returns = np.zeros(2)
         self._length = 0
         super().__init__(env)
 
+    def _restrict(self, obs: dict) -> dict:
+        # Optional curriculum (--stop-within): the planner may only STOP once its own
+        # GPS+compass goal vector (part of its observation) says the goal is that close.
+        if self.stop_within is not None and obs["agent_id"] == "planner":
+            if obs["obs"][GOAL_DISTANCE_INDEX] > self.stop_within:
+                obs["mask"] = [False] + list(obs["mask"][1:])
+        return obs
+
     def reset(self, *args, **kwargs):
         self._returns[:] = 0.0
         self._length = 0
-        return super().reset(*args, **kwargs)
+        obs, info = super().reset(*args, **kwargs)
+        return self._restrict(obs), info
 
     def step(self, action):
         obs, rew, term, trunc, info = super().step(action)
@@ -205,16 +216,17 @@ class LoggedPettingZooEnv(PettingZooEnv):
         if (term or trunc) and self.log is not None:
             self.log.append({"planner": self._returns[0], "executor": self._returns[1], "length": self._length,
                              "success": float(info.get("success", 0.0))})
-        return obs, rew, term, trunc, info
+        return self._restrict(obs), rew, term, trunc, info
 
 
-def make_env(config: dict, seed: int, log: list | None = None) -> PettingZooEnv:
-    env = LoggedPettingZooEnv(plex_nav_v0.compat_env(**config), log)
+def make_env(config: dict, seed: int, log: list | None = None, stop_within: float | None = None) -> PettingZooEnv:
+    env = LoggedPettingZooEnv(plex_nav_v0.compat_env(**config), log, stop_within)
     env.reset(seed=seed)
     return env
 
 
-def build(config: dict, num_envs: int, seed: int, lr: float = 3e-4, log: list | None = None):
+def build(config: dict, num_envs: int, seed: int, lr: float = 3e-4, log: list | None = None,
+          stop_within: float | None = None):
     """The multi-agent PPO and its train and test envs; finished training episodes go to ``log``."""
     probe = make_env(config, seed)
     algorithms = []
@@ -230,8 +242,10 @@ def build(config: dict, num_envs: int, seed: int, lr: float = 3e-4, log: list | 
                               gamma=0.99, gae_lambda=0.95, ent_coef=0.05 if agent == "planner" else 0.01,
                               max_grad_norm=0.5, advantage_normalization=False))
     algorithm = TurnCreditPPO(algorithms=algorithms, env=probe)
-    train_envs = DummyVectorEnv([lambda i=i: make_env(config, seed + 1 + i, log) for i in range(num_envs)])
-    test_envs = DummyVectorEnv([lambda i=i: make_env(config, seed + 1000 + i) for i in range(num_envs)])
+    train_envs = DummyVectorEnv([lambda i=i: make_env(config, seed + 1 + i, log, stop_within)
+                                 for i in range(num_envs)])
+    test_envs = DummyVectorEnv([lambda i=i: make_env(config, seed + 1000 + i, None, stop_within)
+                                for i in range(num_envs)])
     return algorithm, train_envs, test_envs
 
 
@@ -257,6 +271,9 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--max-steps", type=int, default=150, help="executor actions per episode")
     p.add_argument("--lr", type=float, default=3e-4)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--stop-within", type=float, default=None,
+                   help="curriculum: mask the planner's STOP until its goal vector reads below this many metres "
+                        "(without it an untrained pair soon learns that stopping at once beats the slack)")
     a = p.parse_args(argv)
     logging.getLogger("tianshou.data.stats").setLevel(logging.ERROR)  # per-agent return vectors are fine
     torch.manual_seed(a.seed)
@@ -264,7 +281,7 @@ def main(argv: list[str] | None = None) -> dict:
     config = dict(resolution=a.resolution, num_scenes=a.num_scenes, max_steps=a.max_steps)
 
     log: list = []
-    algorithm, train_envs, test_envs = build(config, a.num_envs, a.seed, a.lr, log)
+    algorithm, train_envs, test_envs = build(config, a.num_envs, a.seed, a.lr, log, a.stop_within)
     before = evaluate(algorithm, test_envs, a.eval_episodes)
     print("before training:", before)
     t0 = time.time()
