@@ -7,7 +7,13 @@ Examples::
     python -m plex_ma.train --preset cpu --method plex-gru --no-eli --run-dir runs/no-eli
     python -m plex_ma.train --preset paper --method ppo-smt    # the paper's settings (needs days)
 
-A run dir that already holds a checkpoint is resumed.
+A run dir that already holds a checkpoint is resumed. Data-parallel (DD-PPO) over K workers,
+each with its own ``--num-envs`` worlds (see docs/distributed.md)::
+
+    torchrun --nproc_per_node=2 --standalone -m plex_ma.train --preset cpu
+
+SIGTERM or SIGINT: the current rollout and its update finish, a checkpoint is written, and the
+process exits with 128 + the signal number (143, 130); a second signal stops at once.
 """
 
 from __future__ import annotations
@@ -20,17 +26,30 @@ from plex_ma.config import parse
 
 def main(argv: list[str] | None = None) -> dict:
     cfg = parse(argv)
+    from plex_ma.trainers import distributed
     from plex_ma.trainers.plex import make_trainer
 
-    print(f"training {cfg.method}{'' if cfg.eli or not cfg.method.startswith('plex') else ' (no ELI)'} "
-          f"for {cfg.total_steps:,} steps with {cfg.num_envs} worlds at {cfg.resolution} px -> {cfg.run_dir}")
-    trainer = make_trainer(cfg)
-    try:
-        result = trainer.train()
-    finally:
-        trainer.close()
-    print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()
-                      if not k.startswith("learner/")}))
+    ctx = distributed.init_from_env(cfg.dist_timeout)  # torchrun with WORLD_SIZE > 1: join the group
+    workers = f" per worker x {ctx.world_size} workers ({ctx.backend})" if ctx.active else ""
+    if ctx.is_main:
+        print(f"training {cfg.method}{'' if cfg.eli or not cfg.method.startswith('plex') else ' (no ELI)'} "
+              f"for {cfg.total_steps:,} steps with {cfg.num_envs} worlds{workers} at {cfg.resolution} px -> {cfg.run_dir}")
+    with distributed.graceful_stop():
+        trainer = make_trainer(cfg)
+        try:
+            result = trainer.train()
+        finally:
+            trainer.close()
+    if ctx.is_main:
+        print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()
+                          if not k.startswith("learner/")}))
+    distributed.shutdown()
+    sig = distributed.stop_signal()
+    if sig is not None:
+        if ctx.is_main:
+            print(f"stopped by signal {sig}: checkpoint saved at step {trainer.step:,}; run the same command to resume",
+                  flush=True)
+        sys.exit(128 + sig)
     return result
 
 

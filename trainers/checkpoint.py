@@ -76,6 +76,18 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     return state
 
 
+def remove_stale_temporaries(run_dir: str | os.PathLike) -> list[Path]:
+    """Delete the temporaries of saves cut short by a crash (``kill -9`` during a save); call it
+    only when no save can be running (at start-up). Returns what it removed."""
+    run_dir = Path(run_dir)
+    gone = []
+    if run_dir.is_dir():
+        for p in run_dir.glob(".*.pt.*.tmp"):
+            p.unlink(missing_ok=True)
+            gone.append(p)
+    return gone
+
+
 def find_resumable(run_dir: str | os.PathLike) -> tuple[dict, Path] | None:
     """The newest good checkpoint of a run dir (``latest.pt`` first), or None if it has none.
 

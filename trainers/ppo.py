@@ -24,6 +24,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from . import distributed as _dist
+
 Tensors = torch.Tensor | dict[str, torch.Tensor]
 
 
@@ -243,24 +245,37 @@ def explained_variance(values: torch.Tensor, returns: torch.Tensor) -> float:
 
 
 def ppo_update(policy: nn.Module, batch: RolloutBuffer, optimizer: torch.optim.Optimizer, cfg: PPOConfig,
-               generator: torch.Generator | None = None) -> dict:
+               generator: torch.Generator | None = None, grad_hook=None) -> dict:
     """``cfg.update_epochs`` epochs of minibatch PPO over a rollout whose returns are computed.
     Returns the mean over minibatch updates of policy_loss, value_loss, entropy, approx_kl,
     clip_fraction and grad_norm (before clipping), and the explained variance of the
-    rollout's values."""
+    rollout's values.
+
+    ``grad_hook(policy)`` runs after ``backward`` and before clipping; by default it is
+    ``distributed.average_gradients`` (the DD-PPO all-reduce; a no-op unless distributed)."""
+    hook = _dist.average_gradients if grad_hook is None else grad_hook
     sums: dict[str, float] = {}
     n = 0
+    kl = 0.0
     for _ in range(cfg.update_epochs):
-        for mb in batch.minibatches(cfg.num_minibatches, generator):
-            loss, stats = ppo_loss(policy, mb, cfg)
+        # distributed: every worker steps as often as the one with the most minibatches (None: none left here)
+        for mb in _dist.common_length(batch.minibatches(cfg.num_minibatches, generator)):
             optimizer.zero_grad()
-            loss.backward()
-            stats["grad_norm"] = nn.utils.clip_grad_norm_(policy.parameters(), cfg.max_grad_norm).item()
+            stats = None
+            if mb is not None:
+                loss, stats = ppo_loss(policy, mb, cfg)
+                loss.backward()
+            hook(policy)
+            grad_norm = nn.utils.clip_grad_norm_(policy.parameters(), cfg.max_grad_norm).item()
             optimizer.step()
+            if stats is None:
+                continue
+            stats["grad_norm"] = grad_norm
+            kl = stats["approx_kl"]
             for k, v in stats.items():
                 sums[k] = sums.get(k, 0.0) + v
             n += 1
-        if cfg.target_kl is not None and stats["approx_kl"] > cfg.target_kl:
+        if cfg.target_kl is not None and _dist.mean(kl) > cfg.target_kl:  # all workers stop together
             break
     out = {k: v / max(n, 1) for k, v in sums.items()}
     out["explained_variance"] = explained_variance(batch.data["values"], batch.data["returns"])
