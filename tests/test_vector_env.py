@@ -159,3 +159,16 @@ def test_pointnav_vector_env_matches_gym(num_envs, seed):
                 o, info = e.reset(options={"episode": venv.worlds.sim.episodes[i]})
             _assert_obs_equal({k: v[i] for k, v in obs.items()}, o, f"step {t} world {i}")
     assert terminated >= 5 and truncated >= 3
+
+
+def test_bench_env_runs(capsys):
+    import json
+
+    from plex_ma.bench import main
+
+    main(["env", "--num-envs", "2", "--resolution", "32", "--steps", "3", "--aec-turns", "30", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    for k in ("aec_turns_per_second", "vector_steps_per_second", "vector_executor_steps_per_second",
+              "sim_steps_per_second", "ratio", "ratio_all_actions"):
+        assert out[k] > 0, k
+    assert out["num_envs"] == 2 and out["resolution"] == 32
