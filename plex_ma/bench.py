@@ -38,11 +38,12 @@ def machine() -> dict:
             "python": platform.python_version()}
 
 
-def bench_sim(num_envs: int, resolution: int, steps: int, seed: int, scenes: str = "procgen") -> dict:
+def bench_sim(num_envs: int, resolution: int, steps: int, seed: int, scenes: str = "procgen",
+              num_scenes: int | None = None) -> dict:
     from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
     from plex_ma.envs.sim.episodes import sample_episode
 
-    bank = scene_bank(scenes, "train")
+    bank = scene_bank(scenes, "train", num_scenes)
     sim = BatchedSim(bank, num_envs, resolution=resolution, seed=seed)
     rng = np.random.default_rng(seed)
     geo = Geodesics(bank)
@@ -68,14 +69,14 @@ def bench_sim(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
 
 def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str = "procgen",
               aec_turns: int = 2000, sim_steps: int | None = None, planner_stop_prob: float = 0.01,
-              executor_stop_prob: float = 0.1) -> dict:
+              executor_stop_prob: float = 0.1, num_scenes: int | None = None) -> dict:
     """AEC turns/s of one ``plex_nav_v0.env``, ``PlexVectorEnv`` steps/s at ``num_envs``
     worlds and the raw simulator's steps/s under the same settings (see the module docstring)."""
     from plex_ma.envs import plex_nav_v0
     from plex_ma.envs.vector import EXECUTOR, PlexVectorEnv
 
     rng = np.random.default_rng(seed)
-    cfg = dict(resolution=resolution, scenes=scenes)
+    cfg = dict(resolution=resolution, scenes=scenes, num_scenes=num_scenes)
 
     # One AEC env, driven as a PettingZoo user would.
     env = plex_nav_v0.env(**cfg)
@@ -128,7 +129,7 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
         ended += len(out.episode_infos)
     vec_dt = time.perf_counter() - t0
 
-    sim = bench_sim(num_envs, resolution, steps if sim_steps is None else sim_steps, seed, scenes)
+    sim = bench_sim(num_envs, resolution, steps if sim_steps is None else sim_steps, seed, scenes, num_scenes)
     vec_sps = steps * n / vec_dt
     vec_ex_sps = executor_steps / vec_dt
     return {"benchmark": "env", "num_envs": num_envs, "resolution": resolution,
@@ -152,6 +153,7 @@ def main(argv: list[str] | None = None) -> None:
         sp.add_argument("--steps", type=int, default=steps, help=steps_help)
         sp.add_argument("--seed", type=int, default=0)
         sp.add_argument("--scenes", default="procgen", help="scene source")
+        sp.add_argument("--num-scenes", type=int, default=None, help="training scenes (default: all of the source's)")
         sp.add_argument("--json", action="store_true", help="print one JSON object")
 
     ps = sub.add_parser("sim", help="raw batched simulator throughput")
@@ -163,10 +165,11 @@ def main(argv: list[str] | None = None) -> None:
     pe.add_argument("--executor-stop-prob", type=float, default=0.1, help="chance that an executor action is STOP")
     a = p.parse_args(argv)
     if a.what == "sim":
-        out = bench_sim(a.num_envs, a.resolution, a.steps, a.seed, a.scenes)
+        out = bench_sim(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, a.num_scenes)
     else:
         out = bench_env(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, aec_turns=a.aec_turns,
-                        planner_stop_prob=a.planner_stop_prob, executor_stop_prob=a.executor_stop_prob)
+                        planner_stop_prob=a.planner_stop_prob, executor_stop_prob=a.executor_stop_prob,
+                        num_scenes=a.num_scenes)
     if a.json:
         print(json.dumps(out))
     else:

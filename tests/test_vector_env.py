@@ -166,7 +166,8 @@ def test_bench_env_runs(capsys):
 
     from plex_ma.bench import main
 
-    main(["env", "--num-envs", "2", "--resolution", "32", "--steps", "3", "--aec-turns", "30", "--json"])
+    main(["env", "--num-envs", "2", "--resolution", "32", "--num-scenes", "4", "--steps", "3", "--aec-turns", "30",
+          "--json"])
     out = json.loads(capsys.readouterr().out)
     for k in ("aec_turns_per_second", "vector_steps_per_second", "vector_executor_steps_per_second",
               "sim_steps_per_second", "ratio", "ratio_all_actions"):
