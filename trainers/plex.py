@@ -55,8 +55,10 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     memory = cfg.method.split("-")[1]
     if cfg.method.startswith("plex"):
         return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max),
-                "executor": Executor(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory)}
-    return {"policy": FlatPolicy(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory)}
+                "executor": Executor(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
+                                     gru_hidden=cfg.executor_hidden)}
+    return {"policy": FlatPolicy(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
+                                 gru_hidden=cfg.executor_hidden)}
 
 
 @dataclass
@@ -123,7 +125,7 @@ class Trainer:
         if state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}")
         saved = state["config"]
-        for key in ("method", "resolution", "eli", "smt_memory"):
+        for key in ("method", "resolution", "eli", "smt_memory", "executor_hidden"):
             if saved.get(key) != getattr(self.cfg, key):
                 raise CheckpointError(f"the run dir's checkpoint has {key}={saved.get(key)!r} but this run asks "
                                       f"for {getattr(self.cfg, key)!r}; use another --run-dir")
