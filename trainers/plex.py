@@ -172,6 +172,32 @@ class Trainer:
                          "reward": f"{s.get('reward', 0):.2f}"}, refresh=False)
 
 
+    def _end_of_update(self, n_updates: int, metrics: dict, timing: dict, t_start: float, s_start: int,
+                       bar) -> dict | None:
+        """Throughput and time shares, then logging, checkpoint, recording and progress bar
+        at their intervals. Returns the metrics if they were logged."""
+        cfg = self.cfg
+        sps = (self.step - s_start) / max(time.perf_counter() - t_start, 1e-9)
+        metrics["perf/fps"] = sps
+        tot = sum(timing.values())
+        for k, v in timing.items():
+            metrics[f"perf/share_{k}"] = v / max(tot, 1e-9)
+        logged = None
+        if n_updates % cfg.log_interval == 0:
+            self.log(metrics)
+            logged = metrics
+        if n_updates % cfg.checkpoint_interval == 0:
+            self.save()
+        if cfg.record_interval and n_updates % cfg.record_interval == 0 and self.dist.is_main:
+            from plex_ma.viz.record import record_training_episode  # rerun recording hook
+
+            record_training_episode(self)
+        if bar is not None:
+            bar.update(min(self.step, cfg.total_steps) - bar.n)
+            self._postfix(bar, sps)
+        return logged
+
+
 class PlexTrainer(Trainer):
     """Independent PPO for the planner and the executor (see the module docstring)."""
 
@@ -368,24 +394,7 @@ class PlexTrainer(Trainer):
             if self.cfg.planner == "learn" and self._planner_ready():
                 metrics |= self._update_planner()
             timing["update"] += time.perf_counter() - t4
-            elapsed = time.perf_counter() - t_start
-            sps = (self.step - s_start) / max(elapsed, 1e-9)
-            metrics["perf/fps"] = sps
-            tot = sum(timing.values())
-            for k, v in timing.items():
-                metrics[f"perf/share_{k}"] = v / max(tot, 1e-9)
-            if self.updates["executor"] % cfg.log_interval == 0:
-                self.log(metrics)
-                last_log = metrics
-            if self.updates["executor"] % cfg.checkpoint_interval == 0:
-                self.save()
-            if cfg.record_interval and self.updates["executor"] % cfg.record_interval == 0 and self.dist.is_main:
-                from plex_ma.viz.record import record_training_episode  # rerun recording hook
-
-                record_training_episode(self)
-            if bar is not None:
-                bar.update(min(self.step, cfg.total_steps) - bar.n)
-                self._postfix(bar, sps)
+            last_log = self._end_of_update(self.updates["executor"], metrics, timing, t_start, s_start, bar) or last_log
             if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
                 break
         self.save()
@@ -445,23 +454,7 @@ class FlatTrainer(Trainer):
                        ppo_update(self.policy, buf, self.opts["policy"], self.ppo, self.gen).items()}
             self.updates["policy"] += 1
             timing["update"] += time.perf_counter() - t3
-            sps = (self.step - s_start) / max(time.perf_counter() - t_start, 1e-9)
-            metrics["perf/fps"] = sps
-            tot = sum(timing.values())
-            for k, v in timing.items():
-                metrics[f"perf/share_{k}"] = v / max(tot, 1e-9)
-            if self.updates["policy"] % cfg.log_interval == 0:
-                self.log(metrics)
-                last_log = metrics
-            if self.updates["policy"] % cfg.checkpoint_interval == 0:
-                self.save()
-            if cfg.record_interval and self.updates["policy"] % cfg.record_interval == 0 and self.dist.is_main:
-                from plex_ma.viz.record import record_training_episode  # rerun recording hook
-
-                record_training_episode(self)
-            if bar is not None:
-                bar.update(min(self.step, cfg.total_steps) - bar.n)
-                self._postfix(bar, sps)
+            last_log = self._end_of_update(self.updates["policy"], metrics, timing, t_start, s_start, bar) or last_log
             if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
                 break
         self.save()
