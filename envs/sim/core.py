@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
 from . import kernels as K
@@ -94,6 +95,7 @@ class BatchedSim:
         self.amap = np.zeros((n, self.amap_size, self.amap_size) if egomap else (n, 1, 1), np.uint8)
         self.amap_origin = np.zeros((n, 2), np.float64)
         self.geo = Geodesics(bank)
+        self._astar_scratch = None
         self._stride = max(1, R // 32)
         self._all = np.ones(n, np.bool_)
 
@@ -201,9 +203,13 @@ class BatchedSim:
         g = self.geo
         out = np.full(self.n, np.inf)
         rows = np.asarray(rows, np.int64)
+        if self._astar_scratch is None:  # one row of scratch per numba thread
+            nt, cells = numba.config.NUMBA_NUM_THREADS, b.max_cells
+            self._astar_scratch = (np.empty((nt, cells)), np.zeros((nt, cells), np.int64), np.empty((nt, cells)),
+                                   np.empty((nt, cells), np.int64), np.empty((nt, cells), np.int64))
+        gs, st, hk, hv, hp = self._astar_scratch
         g._stamp = K.astar_batch(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos,
-                                 np.asarray(targets, np.float64), rows, g.g, g.stamp, g._stamp, g.hk, g.hv, g.hpos,
-                                 out)
+                                 np.asarray(targets, np.float64), rows, gs, st, g._stamp, hk, hv, hp, out)
         out[out >= K.INF] = np.inf
         return out
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import sys
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -551,19 +552,19 @@ def astar(nav, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp, hk, h
     return best
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def astar_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, rows, g, stamp, stamp0, hk, hv,
                 hpos, out):
-    """A* distance from ``pos[r]`` to ``targets[r]`` for each ``r`` in ``rows`` (serial);
-    returns the last stamp used."""
-    st = stamp0
-    for k in range(rows.shape[0]):
+    """A* distance from ``pos[r]`` to ``targets[r]`` for each ``r`` in ``rows``, in parallel:
+    the scratch arrays have one row per numba thread (``(threads, cells)``). Every search of
+    the call gets its own stamp ``stamp0 + k + 1``; returns the last stamp used."""
+    for k in prange(rows.shape[0]):
+        t = numba.get_thread_id()
         r = rows[k]
         s = scene_idx[r]
-        st += 1
         out[r] = astar(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, pos[r, 0], pos[r, 1],
-                       targets[r, 0], targets[r, 1], g, stamp, st, hk, hv, hpos)
-    return st
+                       targets[r, 0], targets[r, 1], g[t], stamp[t], stamp0 + k + 1, hk[t], hv[t], hpos[t])
+    return stamp0 + rows.shape[0]
 
 
 @njit(cache=True)
