@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m plex_ma.bench {sim,env,train} [options] [--json]``.
+"""Benchmarks: ``python -m plex_ma.bench {sim,env,record} [options] [--json]``.
 
 ``sim`` steps the raw batched simulator with random movement actions (no STOP, so
 episodes run to 500 steps and reset): every step renders RGB-D, updates the ego maps and
@@ -18,6 +18,13 @@ stops with a small probability, so episodes are long):
 * ``ratio``: vector executor steps / raw simulator steps, the env's overhead over the
   simulator (a planner action steps no simulator, so counting it would flatter the env;
   ``ratio_all_actions`` counts it anyway). The goal is ``ratio >= 0.7`` at 64 worlds, 128 px.
+
+``record`` times the cost of the rerun recordings made during training: the same short
+training (``--preset``, ``--updates`` executor updates, fresh run dirs) once without
+recording and once with ``--record-interval``, after a warm-up run, and each
+``record_training_episode`` call on its own. It prints the measured slowdown at that
+interval and the one expected at ``--default-interval`` (the steady-state cost of one
+recording over the training time of that many updates; the goal is at most 5 %).
 """
 
 from __future__ import annotations
@@ -142,6 +149,70 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
             "machine": machine()}
 
 
+def bench_record(preset: str = "cpu", updates: int = 20, record_interval: int = 10, default_interval: int | None = None,
+                 seed: int = 0, method: str = "plex-gru") -> dict:
+    """Training time with and without recordings (see the module docstring)."""
+    import dataclasses
+    import tempfile
+    from pathlib import Path
+
+    import plex_ma.viz.record as vr
+    from plex_ma.config import TrainConfig, preset_defaults
+    from plex_ma.trainers.plex import make_trainer
+
+    if default_interval is None:
+        default_interval = TrainConfig().record_interval or 50
+    base = preset_defaults(preset, method)
+    calls: list[float] = []
+    calls_cpu: list[float] = []
+    sizes: list[int] = []
+    original = vr.record_training_episode
+
+    def timed(trainer, *args, **kwargs):
+        t, c = time.perf_counter(), time.process_time()
+        out = original(trainer, *args, raise_errors=True, **kwargs)
+        calls.append(time.perf_counter() - t)
+        calls_cpu.append(time.process_time() - c)
+        sizes.append(out.stat().st_size)
+        return out
+
+    def run(n_updates: int, interval: int) -> tuple[float, float]:
+        with tempfile.TemporaryDirectory(prefix="bench_record_") as d:
+            cfg = dataclasses.replace(base, total_steps=n_updates * base.num_envs * base.rollout_steps, run_dir=d,
+                                      record_interval=interval, progress=False, seed=seed,
+                                      checkpoint_interval=10**9)
+            trainer = make_trainer(cfg)
+            t, c = time.perf_counter(), time.process_time()
+            trainer.train()
+            dt, dc = time.perf_counter() - t, time.process_time() - c
+            trainer.close()
+        return dt, dc
+
+    vr.record_training_episode = timed
+    try:
+        run(1, 0)  # warm-up: compiled kernels, torch
+        t_off, c_off = run(updates, 0)
+        t_on, c_on = run(updates, record_interval)
+    finally:
+        vr.record_training_episode = original
+    per_update, per_update_cpu = t_off / updates, c_off / updates
+
+    def steady(xs):  # the first recording also builds the val scenes once per run
+        return float(np.median(xs[1:])) if len(xs) > 1 else (xs[0] if xs else float("nan"))
+
+    return {"benchmark": "record", "preset": preset, "method": method, "updates": updates,
+            "env_steps_per_update": base.num_envs * base.rollout_steps, "record_interval": record_interval,
+            "seconds_without_recording": t_off, "seconds_with_recording": t_on, "recordings": len(calls),
+            "measured_overhead": t_on / t_off - 1.0, "seconds_per_update": per_update,
+            "seconds_per_recording": calls, "seconds_per_recording_steady": steady(calls),
+            "cpu_seconds_without_recording": c_off, "cpu_seconds_with_recording": c_on,
+            "measured_cpu_overhead": c_on / c_off - 1.0, "cpu_seconds_per_recording": calls_cpu,
+            "recording_bytes": sizes, "default_interval": default_interval,
+            "expected_overhead_at_default_interval": steady(calls) / (default_interval * per_update),
+            "expected_cpu_overhead_at_default_interval": steady(calls_cpu) / (default_interval * per_update_cpu),
+            "machine": machine()}
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m plex_ma.bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -163,9 +234,20 @@ def main(argv: list[str] | None = None) -> None:
     pe.add_argument("--aec-turns", type=int, default=2000, help="AEC turns to time")
     pe.add_argument("--planner-stop-prob", type=float, default=0.01, help="chance that a planner action is STOP")
     pe.add_argument("--executor-stop-prob", type=float, default=0.1, help="chance that an executor action is STOP")
+    pr = sub.add_parser("record", help="training time with and without rerun recordings (the overhead)")
+    pr.add_argument("--preset", default="cpu", help="training preset")
+    pr.add_argument("--method", default="plex-gru", help="training method")
+    pr.add_argument("--updates", type=int, default=20, help="executor updates per timed training")
+    pr.add_argument("--record-interval", type=int, default=10, help="updates between recordings in the timed run")
+    pr.add_argument("--default-interval", type=int, default=None,
+                    help="interval to extrapolate to (default: TrainConfig.record_interval)")
+    pr.add_argument("--seed", type=int, default=0)
+    pr.add_argument("--json", action="store_true", help="print one JSON object")
     a = p.parse_args(argv)
     if a.what == "sim":
         out = bench_sim(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, a.num_scenes)
+    elif a.what == "record":
+        out = bench_record(a.preset, a.updates, a.record_interval, a.default_interval, a.seed, a.method)
     else:
         out = bench_env(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, aec_turns=a.aec_turns,
                         planner_stop_prob=a.planner_stop_prob, executor_stop_prob=a.executor_stop_prob,
@@ -175,6 +257,12 @@ def main(argv: list[str] | None = None) -> None:
     else:
         for k, v in out.items():
             print(f"{k:>34}: {v:,.3f}" if isinstance(v, float) else f"{k:>34}: {v}")
+        if a.what == "record":
+            print(f"\nrecording overhead (wall time / CPU time): {100 * out['measured_overhead']:+.1f} % / "
+                  f"{100 * out['measured_cpu_overhead']:+.1f} % measured with a recording every "
+                  f"{out['record_interval']} updates; {100 * out['expected_overhead_at_default_interval']:.1f} % / "
+                  f"{100 * out['expected_cpu_overhead_at_default_interval']:.1f} % expected at the default interval "
+                  f"({out['default_interval']} updates)")
 
 
 if __name__ == "__main__":

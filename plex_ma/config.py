@@ -88,7 +88,7 @@ class TrainConfig:
     """numbered checkpoints kept besides latest.pt"""
     log_interval: int = 1
     """updates between metric lines"""
-    record_interval: int = 0
+    record_interval: int = 50
     """updates between rerun recordings of an episode into the run dir (0: never)"""
     torch_threads: int = 0
     """torch intra-op threads (0: torch's default)"""

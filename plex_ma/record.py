@@ -112,8 +112,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
     rec = EpisodeRecorder(a.out, max_episodes=a.episodes, images=not a.no_images, jpeg_quality=a.jpeg_quality,
                           spawn=a.spawn, name=None)
     if a.checkpoint:
+        import torch
+
         from plex_ma.evaluate import load_policies, run_episodes
         from plex_ma.trainers.checkpoint import CheckpointError
+
+        # One world means batch-1 inference: more torch threads only spin (and beside other
+        # busy processes made an episode several times slower).
+        torch.set_num_threads(1)
 
         try:
             cfg, nets = load_policies(a.checkpoint)
