@@ -1,4 +1,9 @@
-"""Benchmarks: ``python -m plex_ma.bench {sim,env,record} [options] [--json]``.
+"""Benchmarks: ``python -m plex_ma.bench {sim,env,train,record} [options] [--json]``.
+
+``train`` times a short training (``--preset``, ``--method``, ``--steps``) end to end and
+reports steps/s, the shares of wall time in simulation, inference and the update, the
+networks' FLOPs per step, this machine's matmul GFLOP/s and the update's efficiency
+(its FLOP/s over that matmul figure).
 
 ``sim`` steps the raw batched simulator with random movement actions (no STOP, so
 episodes run to 500 steps and reset): every step renders RGB-D, updates the ego maps and
@@ -243,8 +248,21 @@ def main(argv: list[str] | None = None) -> None:
                     help="interval to extrapolate to (default: TrainConfig.record_interval)")
     pr.add_argument("--seed", type=int, default=0)
     pr.add_argument("--json", action="store_true", help="print one JSON object")
+    pt = sub.add_parser("train", help="end-to-end training steps/s, time shares, FLOPs and update efficiency")
+    pt.add_argument("--preset", default="cpu", help="training preset")
+    pt.add_argument("--method", default="plex-gru", help="training method")
+    pt.add_argument("--steps", type=int, default=8192, help="environment steps to train for")
+    pt.add_argument("--num-envs", type=int, default=None, help="worlds (default: the preset's)")
+    pt.add_argument("--resolution", type=int, default=None, help="image size (default: the preset's)")
+    pt.add_argument("--seed", type=int, default=0)
+    pt.add_argument("--json", action="store_true", help="print one JSON object")
     a = p.parse_args(argv)
-    if a.what == "sim":
+    if a.what == "train":
+        from plex_ma.bench_flops import bench_train
+
+        out = bench_train(a.preset, a.method, a.steps, a.num_envs, a.resolution, a.seed)
+        out["machine"] = machine()
+    elif a.what == "sim":
         out = bench_sim(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, a.num_scenes)
     elif a.what == "record":
         out = bench_record(a.preset, a.updates, a.record_interval, a.default_interval, a.seed, a.method)

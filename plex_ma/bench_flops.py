@@ -54,3 +54,48 @@ def matmul_gflops(n: int = 1024, seconds: float = 0.5, dtype: torch.dtype = torc
         dt = time.perf_counter() - t0
         if dt >= seconds:
             return 2 * n ** 3 * reps / dt / 1e9
+
+
+def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192, num_envs: int | None = None,
+                resolution: int | None = None, seed: int = 0) -> dict:
+    """End-to-end training throughput of a short run (``python -m plex_ma.bench train``).
+
+    Reports steps/s, the shares of wall time in simulation, inference and the update, the
+    models' FLOPs per step, this machine's matmul GFLOP/s with the same torch threads, and
+    the update's efficiency: the update's FLOPs (3x forward per sample per epoch) over its
+    wall time, divided by the matmul figure.
+    """
+    import dataclasses
+    import tempfile
+
+    from plex_ma.config import preset_defaults, validate
+    from plex_ma.trainers.plex import make_trainer
+
+    cfg = preset_defaults(preset, method)
+    over = {"total_steps": steps, "progress": False, "seed": seed, "checkpoint_interval": 10**9}
+    if num_envs:
+        over["num_envs"] = num_envs
+    if resolution:
+        over["resolution"] = resolution
+    with tempfile.TemporaryDirectory() as d:
+        cfg = validate(dataclasses.replace(cfg, run_dir=d, **over))
+        trainer = make_trainer(cfg, log=True)
+        result = trainer.train()
+        trainer.close()
+    flops = {k: model_flops_per_step(m) for k, m in trainer.nets.items()}
+    worker = "executor" if "executor" in flops else "policy"
+    if cfg.torch_threads:
+        torch.set_num_threads(cfg.torch_threads)
+    peak = matmul_gflops()
+    update_s = result["perf/share_update"] * steps / result["perf/fps"]
+    # forward + backward ~ 3x the forward FLOPs, per stored transition and epoch
+    n_worker = trainer.updates[worker] * cfg.num_envs * cfg.rollout_steps
+    n_planner = trainer.updates.get("planner", 0) * cfg.n_pl * cfg.num_envs
+    update_flops = 3 * cfg.ppo_epochs * (n_worker * flops[worker] + n_planner * flops.get("planner", 0.0))
+    achieved = update_flops / max(update_s, 1e-9) / 1e9
+    return {"benchmark": "train", "method": method, "preset": preset, "num_envs": cfg.num_envs,
+            "resolution": cfg.resolution, "steps": steps, "steps_per_second": result["perf/fps"],
+            "share_sim": result["perf/share_sim"], "share_inference": result["perf/share_inference"],
+            "share_update": result["perf/share_update"], "model_flops_per_step": flops,
+            "matmul_gflops": peak, "update_gflops": achieved, "update_efficiency": achieved / peak,
+            "torch_threads": torch.get_num_threads()}
