@@ -32,7 +32,7 @@ x east, y north):
 ``world/subgoal``             the active sub-goal, snapped to the nearest reachable point
                               (Points2D)
 ``world/subgoal_raw``         the active sub-goal as the planner proposed it (Points2D)
-``world/subgoals``            every snapped sub-goal proposed so far, labelled ``#k``
+``world/subgoals``            every snapped sub-goal proposed so far, coloured by ``k``
                               (Points2D)
 ``world/subgoals_raw``        every raw sub-goal proposed so far (Points2D)
 ``world/subgoal_line``        the agent to the active sub-goal (LineStrips2D)
@@ -51,9 +51,10 @@ x east, y north):
 ``eli/projection``            every ELI of the episode so far through one fixed random
                               orthonormal projection to 2-D (the same in every recording),
                               coloured by sub-goal index, the latest one larger (Points2D)
-``eli/pca``                   the episode's ELIs on their first two principal components,
-                              coloured from dark (first step) to yellow (last) (Points2D,
-                              static, at the end)
+``eli/pca``                   the episode's ELIs on their first two principal components
+                              (in units of the first one's standard deviation), coloured
+                              from dark (first step) to yellow (last) (Points2D, static, at
+                              the end)
 ``eli/episode``               all of the episode's ELIs, one row per executor step (Tensor
                               (steps, 128), static, at the end)
 ``reward/planner``            the planner's reward of each step (Scalars)
@@ -185,8 +186,10 @@ def default_blueprint(map_extent: tuple[float, float, float, float] | None = Non
         rrb.Spatial2DView(name="Executor depth", origin="executor/depth"),
     )
     eli = rrb.Tabs(
-        rrb.Spatial2DView(name="ELI projection", origin="eli/projection"),
-        rrb.Spatial2DView(name="ELI PCA (episode)", origin="eli/pca"),
+        rrb.Spatial2DView(name="ELI projection", origin="eli/projection",  # fixed axes: comparable across runs
+                          visual_bounds=rrb.VisualBounds2D(x_range=[-4.0, 4.0], y_range=[-4.0, 4.0])),
+        rrb.Spatial2DView(name="ELI PCA (episode)", origin="eli/pca",
+                          visual_bounds=rrb.VisualBounds2D(x_range=[-4.0, 4.0], y_range=[-4.0, 4.0])),
         rrb.TensorView(name="ELI tensor", origin="eli/tensor"),
     )
     return rrb.Blueprint(
@@ -232,7 +235,8 @@ def eli_projection_matrix(dim: int = 128, seed: int = ELI_PROJECTION_SEED) -> np
 
 
 def pca_2d(x: np.ndarray) -> np.ndarray:
-    """(T, D) -> (T, 2) coordinates on the first two principal components (zeros if flat)."""
+    """(T, D) -> (T, 2) coordinates on the first two principal components, in units of the
+    first one's standard deviation (zeros if the points hardly vary)."""
     x = np.asarray(x, np.float64)
     out = np.zeros((len(x), 2), np.float32)
     if len(x) < 2:
@@ -242,7 +246,11 @@ def pca_2d(x: np.ndarray) -> np.ndarray:
         return out
     _, _, vt = np.linalg.svd(xc, full_matrices=False)
     k = min(2, vt.shape[0])
-    out[:, :k] = (xc @ vt[:k].T).astype(np.float32)
+    y = xc @ vt[:k].T
+    sd = y[:, 0].std()
+    if sd < 1e-6:
+        return out
+    out[:, :k] = (y / sd).astype(np.float32)
     return out
 
 
@@ -663,7 +671,7 @@ class EpisodeRecorder:
         if self._plex:
             log("world/subgoal", rr.Points2D.from_fields(radii=0.12, colors=[_SUB]))
             log("world/subgoal_raw", rr.Points2D.from_fields(radii=0.08, colors=[_SUB_RAW]))
-            log("world/subgoals", rr.Points2D.from_fields(radii=0.08, show_labels=False))
+            log("world/subgoals", rr.Points2D.from_fields(radii=0.08))
             log("world/subgoals_raw", rr.Points2D.from_fields(radii=0.05))
             log("world/subgoal_line", rr.LineStrips2D.from_fields(radii=0.02, colors=[_SUB]))
             log("reward/planner", rr.SeriesLines(names="planner", colors=[_PATH]))
@@ -897,8 +905,7 @@ class EpisodeRecorder:
                     positions=np.asarray([ep.subgoals_raw[c - 1] for c in counts], np.float32)))
                 n = max(counts)
                 colours = _PALETTE[np.arange(n) % len(_PALETTE)]
-                send("world/subgoals", times, cumulative(ep.subgoals[:n], counts, colors=colours,
-                                                         labels=[f"#{i}" for i in range(n)]))
+                send("world/subgoals", times, cumulative(ep.subgoals[:n], counts, colors=colours))
                 send("world/subgoals_raw", times, cumulative(ep.subgoals_raw[:n], counts, colors=colours))
             elif key == "subgoal_line":
                 strips = [s for s in vals if s is not None]
