@@ -175,7 +175,11 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--num-envs", type=int, default=8, help="worlds run in parallel")
     p.add_argument("--json", default=None, help="write the summary and per-episode results here")
     p.add_argument("--record", default=None, help="also record the episodes to this .rrd file (rerun)")
+    p.add_argument("--torch-threads", type=int, default=1,
+                   help="torch threads (1: small batches run fastest on a small, shared machine)")
     a = p.parse_args(argv)
+    if a.torch_threads > 0:
+        torch.set_num_threads(a.torch_threads)
     if a.episodes < 1:
         p.error("--episodes must be >= 1")
     try:
