@@ -9,13 +9,6 @@ from plex_ma.networks import ELI_DIM, Executor, FlatPolicy, Planner
 from plex_ma.trainers.ppo import RolloutBuffer
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    # Tests run two workers on two cores; more torch threads only fight over them.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")

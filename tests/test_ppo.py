@@ -7,12 +7,6 @@ from plex_ma.networks import Executor, Planner
 from plex_ma.trainers.ppo import PPOConfig, RolloutBuffer, compute_gae, ppo_loss, ppo_update
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def test_gae_hand_computed():

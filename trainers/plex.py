@@ -172,6 +172,13 @@ class Trainer:
                          "reward": f"{s.get('reward', 0):.2f}"}, refresh=False)
 
 
+    def _finish(self, bar, last_log: dict) -> dict:
+        """Final checkpoint; the last logged metrics with the episode statistics."""
+        self.save()
+        if bar is not None:
+            bar.close()
+        return {**last_log, **self.stats.summary()}
+
     def _end_of_update(self, n_updates: int, metrics: dict, timing: dict, t_start: float, s_start: int,
                        bar) -> dict | None:
         """Throughput and time shares, then logging, checkpoint, recording and progress bar
@@ -397,10 +404,7 @@ class PlexTrainer(Trainer):
             last_log = self._end_of_update(self.updates["executor"], metrics, timing, t_start, s_start, bar) or last_log
             if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
                 break
-        self.save()
-        if bar is not None:
-            bar.close()
-        return {**last_log, **self.stats.summary()}
+        return self._finish(bar, last_log)
 
 
 class FlatTrainer(Trainer):
@@ -457,10 +461,7 @@ class FlatTrainer(Trainer):
             last_log = self._end_of_update(self.updates["policy"], metrics, timing, t_start, s_start, bar) or last_log
             if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
                 break
-        self.save()
-        if bar is not None:
-            bar.close()
-        return {**last_log, **self.stats.summary()}
+        return self._finish(bar, last_log)
 
 
 def make_trainer(cfg: TrainConfig, log: bool = True) -> Trainer:
