@@ -172,6 +172,10 @@ class Trainer:
                          "reward": f"{s.get('reward', 0):.2f}"}, refresh=False)
 
 
+    def _loop_start(self):
+        """Progress bar, last logged metrics, start time and step, and the time shares."""
+        return self._progress(), {}, time.perf_counter(), self.step, {"sim": 0.0, "inference": 0.0, "update": 0.0}
+
     def _finish(self, bar, last_log: dict) -> dict:
         """Final checkpoint; the last logged metrics with the episode statistics."""
         self.save()
@@ -246,7 +250,7 @@ class PlexTrainer(Trainer):
             out = self.planner.act(obs)
             for k, i in enumerate(rows):
                 if self.pending[i] is not None:  # the previous decision's transition is complete
-                    self._close(i, next_value=float(out["value"][k]), done=False)
+                    self._close(i, done=False)
                 self.pending[i] = {"obs": {key: v[k] for key, v in obs.items()}, "stop": int(out["stop"][k]),
                                    "subgoal": out["subgoal"][k].numpy(), "log_prob": float(out["log_prob"][k]),
                                    "value": float(out["value"][k]), "reward": 0.0}
@@ -258,11 +262,10 @@ class PlexTrainer(Trainer):
             self._after_step(res)
             self.starts[rows] = True  # a new sub-goal (or episode) begins an executor turn
 
-    def _close(self, i: int, next_value: float, done: bool) -> None:
+    def _close(self, i: int, done: bool) -> None:
         p = self.pending[i]
         p["done"] = done
         self.chains[i].append(p)
-        self.next_value[i] = 0.0 if done else next_value
         self.pending[i] = None
 
     def _after_step(self, res) -> None:
@@ -275,7 +278,7 @@ class PlexTrainer(Trainer):
             self.stats.add(res.episode_infos[k], float(self.ep_return[i]))
             self.ep_return[i] = 0.0
             if self.pending[i] is not None:
-                self._close(i, 0.0, done=True)
+                self._close(i, done=True)
         self.turn = res.turn
         self.pl_obs = res.planner_obs
         self.ex_obs = res.executor_obs
@@ -333,15 +336,11 @@ class PlexTrainer(Trainer):
         self.turn, self.pl_obs, self.ex_obs = self.env.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
         self.pending = [None] * n
         self.chains = [[] for _ in range(n)]
-        self.next_value = np.zeros(n)
         self.ep_return = np.zeros(n)
         self.starts = np.ones(n, np.bool_)
         self.turn_d0 = np.zeros(n)
         state = self.executor.initial_state(n)
-        bar = self._progress()
-        last_log = {}
-        t_start, s_start = time.perf_counter(), self.step
-        timing = {"sim": 0.0, "inference": 0.0, "update": 0.0}
+        bar, last_log, t_start, s_start, timing = self._loop_start()
         while self.step < cfg.total_steps:
             buf = RolloutBuffer(T, n)
             for t in range(T):
@@ -423,10 +422,7 @@ class FlatTrainer(Trainer):
         state = self.policy.initial_state(n)
         starts = np.ones(n, np.bool_)
         ep_return = np.zeros(n)
-        bar = self._progress()
-        last_log = {}
-        t_start, s_start = time.perf_counter(), self.step
-        timing = {"sim": 0.0, "inference": 0.0, "update": 0.0}
+        bar, last_log, t_start, s_start, timing = self._loop_start()
         while self.step < cfg.total_steps:
             buf = RolloutBuffer(T, n)
             buf.initial_state = state.clone()
