@@ -375,14 +375,13 @@ class PlexWorlds(_Worlds):
             ang = pose[:, 2] + sg[:, 1]
             raw = pose[:, :2] + sg[:, :1] * np.stack([np.cos(ang), np.sin(ang)], 1)
             self.subgoal_raw[rows] = raw
-            for i, p in zip(rows, raw):
-                self.subgoal[i] = self.sim.snap_to_navigable(int(i), p)
-            self.subgoal_dist[rows] = self._subgoal_distance(rows)
+            self.subgoal[rows] = self.sim.snap_to_navigable(self.subgoal_raw, rows)[rows]
+            self.subgoal_dist[rows] = self._subgoal_distance(rows, new_subgoal=True)
             self.turn[rows] = EXECUTOR
             self.turn_steps[rows] = 0
 
-    def _subgoal_distance(self, rows) -> np.ndarray:
-        d = self.sim.geodesic_to(self.subgoal, rows)[rows]
+    def _subgoal_distance(self, rows, new_subgoal: bool = False) -> np.ndarray:
+        d = self.sim.track_distance(self.subgoal, rows, new_target=new_subgoal)[rows]
         if not np.all(np.isfinite(d)):
             bad = rows[~np.isfinite(d)]
             raise RuntimeError(f"sub-goal unreachable in worlds {bad.tolist()} after snapping; this is a bug")
@@ -400,9 +399,9 @@ class PlexWorlds(_Worlds):
         d_sub_prev = self.subgoal_dist[rows].copy()
         pos_prev = sim.pos[rows].copy()
         collided = sim.step(acts, active)[rows]
-        # The sub-goal is fixed during the turn, so the geodesic distance to it (an A*
-        # search, the costliest part of a step) changes only where the agent moved; turns,
-        # STOP and blocked moves keep the previous value, which is exactly what A* returns.
+        # The sub-goal is fixed during the turn, so the geodesic distance to it changes only
+        # where the agent moved; turns, STOP and blocked moves keep the previous value. The
+        # search behind it resumes from where the turn's earlier queries left it.
         d_sub = d_sub_prev.copy()
         moved = np.any(sim.pos[rows] != pos_prev, axis=1)
         if moved.any():

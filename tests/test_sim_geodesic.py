@@ -108,3 +108,71 @@ def test_unreachable_points_are_inf():
     assert geo.lookup(0, f, np.array([-20.0, 1.0])) == math.inf
     # Within one room distances stay finite and euclidean in free space.
     assert geo.distance(0, left, left + np.array([0.5, 0.5])) == pytest_approx(math.hypot(0.5, 0.5))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_tracked_distance_equals_reference_while_the_agent_moves(seed):
+    """The resumable search behind the sub-goal distance: every query, from wherever the
+    agent has walked since the target was set (far from the anchor too), and after new
+    targets, equals the reference Dijkstra (the goal field, the search's landmark, is
+    float32: 1e-4 m); unreachable targets stay inf."""
+    from plex_ma.envs.sim import BatchedSim
+
+    grid, bank, geo = house()
+    rng = np.random.default_rng(seed)
+    sim = BatchedSim(bank, 3, resolution=8, egomap=False)
+    for i in range(3):  # each world's goal field: the landmark of the search's heuristic
+        geo.field(0, random_navigable_point(grid, rng), out=sim.fields[i])
+    targets = np.zeros((3, 2))
+    refs = [None] * 3
+    for step in range(40):
+        new = step % 13 == 0
+        if new:
+            for i in range(3):
+                targets[i] = random_navigable_point(grid, rng)
+                refs[i] = reference_field(grid, targets[i])
+        rows = np.array([i for i in range(3) if new or rng.random() < 0.7])
+        for i in range(3):  # teleport the agents anywhere, near or far from the anchor
+            sim.pos[i] = random_navigable_point(grid, rng) if rng.random() < 0.3 else sim.pos[i]
+        got = sim.track_distance(targets, rows if len(rows) else np.arange(3), new_target=new)
+        for i in (rows if len(rows) else range(3)):
+            assert got[i] == pytest.approx(reference_lookup(grid, refs[i], sim.pos[i]), rel=0, abs=1e-4)
+
+
+def test_tracked_distance_to_an_unreachable_target_is_inf():
+    from plex_ma.envs.sim import BatchedSim
+
+    grid = rasterize(two_rooms_no_door())
+    sim = BatchedSim(SceneBank([grid]), 1, resolution=8, egomap=False)
+    sim.pos[0] = (1.5, 1.5)
+    assert sim.track_distance(np.array([[4.5, 1.5]]), np.array([0]), new_target=True)[0] == math.inf
+    target = np.array([[2.0, 2.0]])
+    assert sim.track_distance(target, np.array([0]), new_target=True)[0] == pytest.approx(math.hypot(0.5, 0.5))
+    sim.pos[0] = (1.0, 1.0)
+    assert sim.track_distance(target, np.array([0]), new_target=False)[0] == pytest.approx(math.hypot(1.0, 1.0))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(-1.0, 7.0), st.floats(-1.0, 4.0))
+def test_snapped_subgoal_is_the_nearest_reachable_cell_centre(x, y):
+    """Snapping (how the env places a sub-goal that is not navigable): the result is the
+    nearest navigable cell centre of the agent's room (brute force over all cells); the other
+    room, behind a wall without a door, is never chosen."""
+    from plex_ma.envs.sim import BatchedSim
+
+    grid = rasterize(two_rooms_no_door())
+    sim = BatchedSim(SceneBank([grid]), 1, resolution=8, egomap=False)
+    sim.pos[0] = (1.5, 1.5)  # left room
+    got = sim.snap_to_navigable(np.array([[x, y]]), np.array([0]))[0]
+    r, c = grid.world_to_cell(sim.pos[0])
+    same = grid.nav & (grid.component == grid.component[r, c])
+    pr, pc = grid.world_to_cell(np.array([x, y]))
+    if 0 <= pr < grid.shape[0] and 0 <= pc < grid.shape[1] and same[pr, pc]:
+        assert np.array_equal(got, [x, y])  # already reachable: kept as it is
+        return
+    rows, cols = np.nonzero(same)
+    centres = grid.cell_center(np.stack([rows, cols], 1))
+    best = np.min(np.hypot(centres[:, 0] - x, centres[:, 1] - y))
+    assert math.hypot(got[0] - x, got[1] - y) == pytest.approx(best, abs=1e-9)
+    assert got[0] < 3.0  # still in the left room

@@ -96,6 +96,7 @@ class BatchedSim:
         self.amap_origin = np.zeros((n, 2), np.float64)
         self.geo = Geodesics(bank)
         self._astar_scratch = None
+        self._track = None
         self._stride = max(1, R // 32)
         self._all = np.ones(n, np.bool_)
 
@@ -213,22 +214,48 @@ class BatchedSim:
         out[out >= K.INF] = np.inf
         return out
 
+    def track_distance(self, targets: np.ndarray, rows: np.ndarray, new_target: bool) -> np.ndarray:
+        """Geodesic distance from each agent in ``rows`` to a target that stays fixed while
+        the agent moves (a sub-goal); ``new_target`` starts tracking ``targets[rows]`` from
+        the agents' current positions. Same values as :meth:`geodesic_to` (up to float32
+        rounding of the goal field, < 1e-4 m), but each query resumes one search per target
+        (a resumable reverse A*, with the episode's goal field as a landmark) instead of a
+        fresh A*. The worlds must have been reset (their goal fields are used).
+        Returns (N,) with entries for ``rows`` filled (``inf`` if unreachable)."""
+        b = self.bank
+        rows = np.asarray(rows, np.int64)
+        if self._track is None:  # per-world search state, about 28 bytes per grid cell
+            n, cells = self.n, b.max_cells
+            self._track = dict(g=np.empty((n, cells)), stamp=np.zeros((n, cells), np.int32),
+                               hk=np.empty((n, cells)), hv=np.empty((n, cells), np.int32),
+                               hpos=np.empty((n, cells), np.int32), cur=np.zeros(n, np.int32),
+                               size=np.zeros(n, np.int64), anchors=np.zeros((n, 2)), targets=np.zeros((n, 2)),
+                               fa=np.zeros(n))
+        t = self._track
+        if new_target:
+            t["targets"][rows] = np.asarray(targets, np.float64).reshape(-1, 2)[rows]
+        out = np.full(self.n, np.inf)
+        K.track_batch(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos, t["targets"],
+                      t["anchors"], rows, np.full(len(rows), bool(new_target)), t["g"], t["stamp"], t["cur"], t["hk"],
+                      t["hv"], t["hpos"], t["size"], self.fields, t["fa"], out)
+        out[out >= K.INF] = np.inf
+        return out
+
     def geodesic(self, i: int, a: np.ndarray, b: np.ndarray) -> float:
         """Geodesic distance between two points in world ``i``'s scene (``inf`` if not connected)."""
         return self.geo.distance(int(self.scene_idx[i]), a, b)
 
-    def snap_to_navigable(self, i: int, point: np.ndarray, max_radius: float = 8.0) -> np.ndarray:
-        """The nearest point to ``point`` reachable from world ``i``'s agent."""
-        s = int(self.scene_idx[i])
+    def snap_to_navigable(self, points: np.ndarray, rows: np.ndarray, max_radius: float = 8.0) -> np.ndarray:
+        """For each world in ``rows``, the nearest point to ``points[r]`` that its agent can
+        reach (a navigable cell centre of the agent's component, or the point itself if it
+        is one); the agent's position if none lies within ``max_radius``. Returns (N, 2)
+        with the rows filled."""
         b = self.bank
-        nav, off, h, w, ox, oy, cs = b.grid_args(s)
-        r, c = b.grids[s].world_to_cell(self.pos[i])
-        comp = int(b.grids[s].component[r, c])
-        x, y, ok = K.nearest_navigable(nav, b.comp, off, h, w, ox, oy, cs, float(point[0]), float(point[1]),
-                                       comp, max_radius)
-        if not ok:
-            return self.pos[i].copy()
-        return np.array([x, y])
+        out = np.zeros((self.n, 2))
+        K.snap_batch(b.nav, b.comp, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos,
+                     np.asarray(points, np.float64).reshape(self.n, 2), np.asarray(rows, np.int64), float(max_radius),
+                     out)
+        return out
 
     def memory_per_world(self) -> int:
         """Bytes of per-world state (images, ego map, goal field, pose)."""

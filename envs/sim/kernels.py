@@ -567,6 +567,146 @@ def astar_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, r
     return stamp0 + rows.shape[0]
 
 
+# Distance to a fixed target from a moving agent: a *resumable reverse A** (Silver 2005).
+# The search runs from the target towards the agent's position when the target was set
+# (the anchor; Euclidean heuristic, consistent on this graph). A cell's g is exact once it
+# is closed, whatever the later queries are, so a query from the agent's new position only
+# resumes the search until the cells around that position are settled. An executor turn
+# costs about one A* instead of one per step, and the goal field as a landmark (ALT) keeps
+# that one search narrow when the sub-goal lies towards the goal. State per world lives in ``g``, ``stamp``,
+# ``hk``, ``hv``, ``hpos`` (one row per world); ``hpos == -2`` marks a closed cell.
+
+
+@njit(cache=True, inline="always")
+def _track_h(F, v, x, y, ax, ay, fa, slack):
+    """Heuristic from cell ``v`` (centre x, y) to the anchor: the larger of the Euclidean
+    distance and the landmark bound |F[v] - F(anchor)| - slack, where F is the episode's
+    goal field (ALT, Goldberg & Harrelson 2005). Both are consistent; ``slack`` (1.5 cells)
+    covers the point-to-cell links, so the bound never exceeds the true distance."""
+    e = math.sqrt((x - ax) ** 2 + (y - ay) ** 2)
+    fv = F[v]
+    if fv < INF and fa < INF:
+        l = abs(fv - fa) - slack
+        if l > e:
+            return l
+    return e
+
+
+@njit(cache=True)
+def track_init(nav, off, h, w, ox, oy, cs, tx, ty, g, stamp, cur, hk, hv, hpos, ax, ay, F, fa):
+    """Start a reverse search from the target (tx, ty) towards the anchor (ax, ay); returns
+    the heap size."""
+    size = 0
+    r0, c0 = _block(ox, oy, cs, tx, ty)
+    for dr in range(2):
+        for dc in range(2):
+            r = r0 + dr
+            c = c0 + dc
+            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
+                continue
+            cx = ox + (c + 0.5) * cs
+            cy = oy + (r + 0.5) * cs
+            v = r * w + c
+            stamp[v] = cur
+            g[v] = math.sqrt((cx - tx) ** 2 + (cy - ty) ** 2)
+            hpos[v] = -1
+            size = _heap_push(hk, hv, hpos, size, g[v] + _track_h(F, v, cx, cy, ax, ay, fa, 1.5 * cs), v)
+    return size
+
+
+@njit(cache=True)
+def track_query(nav, off, h, w, ox, oy, cs, g, stamp, cur, hk, hv, hpos, size, ax, ay, px, py, out, wi, F, fa):
+    """Geodesic distance from (px, py) to the search's target into ``out[wi]`` (INF if not
+    connected), resuming the search as far as needed; returns the new heap size."""
+    diag = cs * math.sqrt(2.0)
+    slack = 1.5 * cs
+    r0, c0 = _block(ox, oy, cs, px, py)
+    while True:
+        # best over the closed cells around p; a lower bound for the open ones: a cell u
+        # not yet closed has g*(u) >= f_top - h(u) (consistent heuristic)
+        best = INF
+        bound = INF
+        f_top = hk[0] if size > 0 else INF
+        for dr in range(2):
+            for dc in range(2):
+                r = r0 + dr
+                c = c0 + dc
+                if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
+                    continue
+                v = r * w + c
+                cx = ox + (c + 0.5) * cs
+                cy = oy + (r + 0.5) * cs
+                tail = math.sqrt((cx - px) ** 2 + (cy - py) ** 2)
+                if stamp[v] == cur and hpos[v] == -2:
+                    t = g[v] + tail
+                    if t < best:
+                        best = t
+                elif size > 0:
+                    t = f_top - _track_h(F, v, cx, cy, ax, ay, fa, slack) + tail
+                    if t < bound:
+                        bound = t
+        if bound >= best or size == 0:
+            out[wi] = best
+            return size
+        f, v, size = _heap_pop(hk, hv, hpos, size)
+        d = g[v]
+        r = v // w
+        c = v % w
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                if dr == 0 and dc == 0:
+                    continue
+                rr = r + dr
+                cc = c + dc
+                if rr < 0 or rr >= h or cc < 0 or cc >= w:
+                    continue
+                if nav[off + rr * w + cc] == 0:
+                    continue
+                if dr != 0 and dc != 0:
+                    if nav[off + r * w + cc] == 0 or nav[off + rr * w + c] == 0:
+                        continue
+                    nd = d + diag
+                else:
+                    nd = d + cs
+                u = rr * w + cc
+                if stamp[u] != cur:
+                    stamp[u] = cur
+                    g[u] = INF
+                    hpos[u] = -1
+                if nd < g[u]:
+                    g[u] = nd
+                    ux = ox + (cc + 0.5) * cs
+                    uy = oy + (rr + 0.5) * cs
+                    fu = nd + _track_h(F, u, ux, uy, ax, ay, fa, slack)
+                    if hpos[u] == -1:
+                        size = _heap_push(hk, hv, hpos, size, fu, u)
+                    elif hpos[u] >= 0:
+                        _heap_decrease(hk, hv, hpos, hpos[u], fu)
+
+
+@njit(cache=True, parallel=True)
+def track_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, anchors, rows, init, g, stamp,
+                cur, hk, hv, hpos, size, fields, fa, out):
+    """For each world ``r`` in ``rows`` (in parallel): if ``init[k]``, start a new search
+    towards ``targets[r]`` anchored at ``pos[r]`` (bumping ``cur[r]``); then the distance
+    from ``pos[r]`` into ``out[r]``. Every per-world array has one row per world;
+    ``fields`` are the worlds' goal fields (the landmark of the heuristic) and ``fa`` their
+    value at each anchor."""
+    for k in prange(rows.shape[0]):
+        r = rows[k]
+        s = scene_idx[r]
+        if init[k]:
+            cur[r] += 1
+            anchors[r, 0] = pos[r, 0]
+            anchors[r, 1] = pos[r, 1]
+            fa[r] = field_lookup(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, fields[r], pos[r, 0], pos[r, 1])
+            size[r] = track_init(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, targets[r, 0], targets[r, 1],
+                                 g[r], stamp[r], cur[r], hk[r], hv[r], hpos[r], pos[r, 0], pos[r, 1], fields[r], fa[r])
+        size[r] = track_query(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, g[r], stamp[r], cur[r], hk[r],
+                              hv[r], hpos[r], size[r], anchors[r, 0], anchors[r, 1], pos[r, 0], pos[r, 1], out, r,
+                              fields[r], fa[r])
+
+
 @njit(cache=True)
 def nearest_navigable(nav, comp, off, h, w, ox, oy, cs, x, y, want_comp, max_radius):
     """Nearest point to (x, y) that is a navigable cell centre of component ``want_comp``
@@ -581,7 +721,8 @@ def nearest_navigable(nav, comp, off, h, w, ox, oy, cs, x, y, want_comp, max_rad
     bx = x
     by = y
     for ring in range(1, R + 1):
-        if best < (ring - 1) * cs:
+        # every centre on this ring is at least (ring - 1/2) cells from (x, y)
+        if best <= ((ring - 0.5) * cs) ** 2:
             break
         for dr in range(-ring, ring + 1):
             for dc in range(-ring, ring + 1):
@@ -602,6 +743,25 @@ def nearest_navigable(nav, comp, off, h, w, ox, oy, cs, x, y, want_comp, max_rad
                     bx = cx
                     by = cy
     return bx, by, best < INF
+
+
+@njit(cache=True, parallel=True)
+def snap_batch(nav, comp, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, points, rows, max_radius, out):
+    """``out[r]`` = the nearest point to ``points[r]`` reachable from ``pos[r]`` (the agent's
+    position itself if none is within ``max_radius``), for each ``r`` in ``rows``."""
+    for k in prange(rows.shape[0]):
+        r = rows[k]
+        s = scene_idx[r]
+        off, h, w, ox, oy = g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s]
+        ar, ac = _cell(ox, oy, cs, pos[r, 0], pos[r, 1])
+        want = comp[off + ar * w + ac]
+        x, y, ok = nearest_navigable(nav, comp, off, h, w, ox, oy, cs, points[r, 0], points[r, 1], want, max_radius)
+        if ok:
+            out[r, 0] = x
+            out[r, 1] = y
+        else:
+            out[r, 0] = pos[r, 0]
+            out[r, 1] = pos[r, 1]
 
 
 # ---------------------------------------------------------------------------------------
