@@ -22,6 +22,8 @@ class TrainConfig:
     """plex-gru / plex-smt (the paper's PLEX LSTM / SMT) or the flat baselines ppo-gru / ppo-smt"""
     eli: bool = True
     """pass the executor's ELI to the planner (--no-eli: the paper's ablation)"""
+    planner_goal_prior: bool = True
+    """PLEX only: start the planner goal-directed (sub-goal head residual on the goal vector, stop head initialised to fire near the goal); --no-planner-goal-prior: the paper's plain heads"""
     planner: Literal["learn", "random"] = "learn"
     """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping)"""
     random_subgoal_distance: float = 2.0
@@ -30,6 +32,10 @@ class TrainConfig:
     """largest |direction| (rad) of the random planner's sub-goals"""
     planner_warmup_steps: int = 0
     """PLEX only: environment steps during which random sub-goals stand in for the planner (not trained) while the executor learns"""
+    warmup_scenes: str | None = None
+    """PLEX only: scene source during the planner warm-up (e.g. open-room, where random sub-goals are reachable); None: --scenes"""
+    warmup_max_steps: int = 40
+    """PLEX only: agent actions per episode on --warmup-scenes (short episodes keep the agent away from walls, where snapped sub-goals are trivially close)"""
     preset: Preset = "cpu"
     """defaults to start from: smoke (< 2 min), cpu (best per CPU hour here), paper (256 px, paper settings)"""
     total_steps: int = 2_000_000
@@ -104,11 +110,14 @@ PRESETS: dict[str, dict] = {
                   checkpoint_interval=5, ppo_epochs=2),
     # What learns best per CPU hour on this machine (see README: chosen by measurement).
     # Deviations from the paper, for a budget 100x smaller: a 128-unit executor GRU (at 512
-    # the GRU is half of the update's FLOPs) and 100k steps of executor warm-up under random
-    # sub-goals (an untrained planner otherwise learns at once to stop: an unsuccessful
-    # stop costs nothing, and every executor step costs slack).
+    # the GRU is half of the update's FLOPs), lr 1e-3 (the executor's open-room skill took
+    # 2x fewer steps than at 2.5e-4), the planner's goal prior (Planner docstring), and
+    # 30k steps of executor warm-up in an open room under random sub-goals (1.5 m, any
+    # direction) in 40-step episodes: in houses, most sub-goals of an untrained planner lie
+    # behind walls and the executor never learns to reach any.
     "cpu": dict(total_steps=2_000_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=32, torch_threads=1,
-                executor_hidden=128, planner_warmup_steps=100_000),
+                executor_hidden=128, lr=1e-3, planner_warmup_steps=30_000, warmup_scenes="open-room",
+                random_subgoal_distance=1.5, random_subgoal_angle=3.14),
     # The paper's settings: 256 px images, N_PL = 128, 30M steps.
     "paper": dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128),
 }
@@ -150,6 +159,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.record_interval >= 0, "record_interval", "must be >= 0")
     need(cfg.planner in ("learn", "random"), "planner", "must be 'learn' or 'random'")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
+    need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
     need(cfg.rho_max > 0.5, "rho_max", "must be above 0.5 m")
     need(0.5 < cfg.random_subgoal_distance <= cfg.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")

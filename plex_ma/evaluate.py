@@ -35,7 +35,8 @@ def load_policies(path: str | Path) -> tuple[TrainConfig, dict]:
     """The config and networks stored in a checkpoint (loaded with ``weights_only=True``)."""
     state = load_checkpoint(path)
     known = {f.name for f in dataclasses.fields(TrainConfig)}
-    cfg = TrainConfig(**{k: v for k, v in state["config"].items() if k in known})
+    saved = {"planner_goal_prior": False, **state["config"]}  # checkpoints from before the prior existed
+    cfg = TrainConfig(**{k: v for k, v in saved.items() if k in known})
     nets = build_policies(cfg)
     try:
         for k, m in nets.items():

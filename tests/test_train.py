@@ -201,3 +201,16 @@ def test_executor_alone_learns_to_reach_subgoals(tmp_path):
     curve = [d["metrics/executor_success"] for d in lines if "metrics/executor_success" in d]
     assert curve[0] < 0.3, curve[:5]
     assert np.mean(curve[-3:]) >= 0.6, curve[-10:]
+
+
+def test_warmup_on_other_scenes_then_training_scenes(tmp_path):
+    """--warmup-scenes: random sub-goals in open rooms during the warm-up (short episodes),
+    then the planner learns on the training scenes."""
+    cfg = tiny(tmp_path, warmup_scenes="open-room", planner_warmup_steps=64, warmup_max_steps=8, total_steps=160)
+    t = make_trainer(cfg)
+    assert t.env.config.scenes == "open-room" and t.env.config.max_steps == 8
+    t.train()
+    t.close()
+    assert t.env.config.scenes == "procgen" and t.env.config.max_steps == cfg.max_steps
+    assert all(w.scene_id.startswith("procgen") for w in t.env.worlds.sim.episodes)
+    assert t.updates["planner"] >= 1  # the planner trained after the warm-up

@@ -54,7 +54,7 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     """The networks of a method: {'planner', 'executor'} for PLEX, {'policy'} for flat PPO."""
     memory = cfg.method.split("-")[1]
     if cfg.method.startswith("plex"):
-        return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max),
+        return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max, goal_prior=cfg.planner_goal_prior),
                 "executor": Executor(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden)}
     return {"policy": FlatPolicy(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
@@ -125,7 +125,7 @@ class Trainer:
         if state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}")
         saved = state["config"]
-        for key in ("method", "resolution", "eli", "smt_memory", "executor_hidden"):
+        for key in ("method", "resolution", "eli", "smt_memory", "executor_hidden", "planner_goal_prior"):
             if saved.get(key) != getattr(self.cfg, key):
                 raise CheckpointError(f"the run dir's checkpoint has {key}={saved.get(key)!r} but this run asks "
                                       f"for {getattr(self.cfg, key)!r}; use another --run-dir")
@@ -214,13 +214,36 @@ class PlexTrainer(Trainer):
 
     def __init__(self, cfg: TrainConfig, log: bool = True):
         super().__init__(cfg, log)
-        self.env = PlexVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["executor"] + self.dist.seed_offset,
-                                 n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, **env_kwargs(cfg))
+        self.warm_env = bool(cfg.warmup_scenes) and self._warming_up()
+        self.env = self._make_env()
         self.planner: Planner = self.nets["planner"]
         self.executor: Executor = self.nets["executor"]
         self.restart_memory = self.env.executor_memory_restart
         self.np_rng = np.random.default_rng(cfg.seed + self.dist.seed_offset)
         self.executor_success: deque = deque(maxlen=200)  # reached / turns, over recent turns
+
+    def _warming_up(self) -> bool:
+        return self.step < self.cfg.planner_warmup_steps
+
+    def _make_env(self) -> PlexVectorEnv:
+        """The training worlds; during the warm-up on ``--warmup-scenes`` if given."""
+        cfg = self.cfg
+        kw = env_kwargs(cfg)
+        if self.warm_env:
+            kw |= {"scenes": cfg.warmup_scenes, "num_scenes": None, "max_steps": cfg.warmup_max_steps}
+        return PlexVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["executor"] + self.dist.seed_offset,
+                             n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, **kw)
+
+    def _start_episodes(self) -> torch.Tensor:
+        """Reset the worlds and the per-world bookkeeping; returns the executor's memory."""
+        n = self.cfg.num_envs
+        self.turn, self.pl_obs, self.ex_obs = self.env.reset(seed=self.cfg.seed + self.step + self.dist.seed_offset)
+        self.pending = [None] * n
+        self.chains = [[] for _ in range(n)]
+        self.ep_return = np.zeros(n)
+        self.starts = np.ones(n, np.bool_)
+        self.turn_d0 = np.zeros(n)
+        return self.executor.initial_state(n)
 
     def _random_decisions(self, rows: np.ndarray) -> dict:
         """The ``--planner random`` stand-in: uniform sub-goals, never a stop, never trained."""
@@ -239,7 +262,7 @@ class PlexTrainer(Trainer):
             if len(rows) == 0:
                 return
             obs = {k: v[rows] for k, v in self.pl_obs.items()}
-            if self.cfg.planner == "random" or self.step < self.cfg.planner_warmup_steps:
+            if self.cfg.planner == "random" or self._warming_up():
                 out = self._random_decisions(rows)
                 stop = np.zeros(n, np.int64)
                 sub = np.zeros((n, 2), np.float32)
@@ -333,15 +356,17 @@ class PlexTrainer(Trainer):
     def train(self) -> dict:
         cfg = self.cfg
         n, T = cfg.num_envs, cfg.rollout_steps
-        self.turn, self.pl_obs, self.ex_obs = self.env.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
-        self.pending = [None] * n
-        self.chains = [[] for _ in range(n)]
-        self.ep_return = np.zeros(n)
-        self.starts = np.ones(n, np.bool_)
-        self.turn_d0 = np.zeros(n)
-        state = self.executor.initial_state(n)
+        state = self._start_episodes()
         bar, last_log, t_start, s_start, timing = self._loop_start()
         while self.step < cfg.total_steps:
+            if self.warm_env and not self._warming_up():
+                # The warm-up on --warmup-scenes is over: move to the training scenes. Episodes in
+                # flight are dropped (the random planner's decisions are not trained on anyway).
+                self.env.close()
+                self.warm_env = False
+                self.env = self._make_env()
+                self.stats = EpisodeStats()
+                state = self._start_episodes()
             buf = RolloutBuffer(T, n)
             for t in range(T):
                 t0 = time.perf_counter()
