@@ -39,8 +39,12 @@ everything it earned during the executor's turn.
 
 | agent | on every executor action | extra |
 |---|---|---|
-| executor | decrease of geodesic distance to the sub-goal - 0.01 slack - 0.01 on collision | +1.0 for STOP within 0.5 m (geodesic) of the sub-goal |
+| executor | decrease of geodesic distance to the sub-goal - 0.01 slack - 0.01 on collision | +1.0 for STOP within 0.5 m (geodesic) of a sub-goal that was farther than 0.5 m when it was set |
 | planner | decrease of geodesic distance to the end goal - 0.01 slack - 0.01 on collision | +10 when its stop is a success |
+
+A sub-goal set within 0.5 m of the agent (a short or snapped proposal) earns no STOP bonus,
+as Habitat never starts an episode at its goal: otherwise an executor learns to STOP at
+once on every sub-goal, farming the bonus from the planner's exploration noise.
 
 The planner's return over an episode is thus the flat agent's episode reward (Table 1 of
 the paper). A success is a planner stop with the geodesic distance to the goal below
@@ -97,7 +101,8 @@ every SuperSuit wrapper and what it does here.
 
 ## Version history
 
-* v0: initial release.
+* v0: initial release. (Before the first release the executor's STOP bonus was also paid
+  for sub-goals set already within reach; see Rewards.)
 """
 
 from __future__ import annotations

@@ -15,7 +15,8 @@ Rewards written on every executor step:
 
 ==========  ==========================================================================
 executor    geodesic progress towards the sub-goal + slack + collision
-            (+ ``subgoal_reward`` when it chooses STOP within ``subgoal_radius``)
+            (+ ``subgoal_reward`` when it chooses STOP within ``subgoal_radius`` of a
+            sub-goal that was farther than that when it was set)
 planner     geodesic progress towards the end goal + slack + collision
 ==========  ==========================================================================
 """
@@ -244,7 +245,7 @@ class PlexStep:
     acted: np.ndarray  # (N,) int8: who acted this step (PLANNER / EXECUTOR, -1: nothing)
     executor_turn_end: np.ndarray  # (N,) bool: the executor's turn ended (STOP, n_ex or episode end)
     executor_stopped: np.ndarray  # (N,) bool: ... because it chose STOP
-    executor_reached: np.ndarray  # (N,) bool: ... with a STOP within subgoal_radius (its success)
+    executor_reached: np.ndarray  # (N,) bool: ... with a STOP within subgoal_radius of a sub-goal set farther (its success)
     terminated: np.ndarray  # (N,) bool: episode ended by a planner stop
     truncated: np.ndarray  # (N,) bool: episode ended by max_steps
 
@@ -260,6 +261,7 @@ class PlexWorlds(_Worlds):
         self.subgoal = np.zeros((n, 2), np.float64)  # snapped, fixed in the world
         self.subgoal_raw = np.zeros((n, 2), np.float64)  # as proposed, before snapping
         self.subgoal_dist = np.zeros(n, np.float64)  # geodesic distance agent -> sub-goal
+        self.subgoal_dist0 = np.zeros(n, np.float64)  # ... when the sub-goal was set
         self.eli = np.zeros((n, ELI_DIM), np.float32)  # last ELI the executor sent
         self.planner_decisions = np.zeros(n, np.int64)
 
@@ -273,6 +275,7 @@ class PlexWorlds(_Worlds):
         self.subgoal[rows] = self.sim.pos[rows]
         self.subgoal_raw[rows] = self.sim.pos[rows]
         self.subgoal_dist[rows] = 0.0
+        self.subgoal_dist0[rows] = 0.0
         self.planner_decisions[rows] = 0
 
     # ------------------------------------------------------------------ observations
@@ -377,6 +380,7 @@ class PlexWorlds(_Worlds):
             self.subgoal_raw[rows] = raw
             self.subgoal[rows] = self.sim.snap_to_navigable(self.subgoal_raw, rows)[rows]
             self.subgoal_dist[rows] = self._subgoal_distance(rows, new_subgoal=True)
+            self.subgoal_dist0[rows] = self.subgoal_dist[rows]
             self.turn[rows] = EXECUTOR
             self.turn_steps[rows] = 0
 
@@ -409,7 +413,9 @@ class PlexWorlds(_Worlds):
         self.subgoal_dist[rows] = d_sub
         stopped = action == STOP
         ex_r = progress_reward(d_sub_prev, d_sub, collided, cfg)
-        reached = stopped & (d_sub < cfg.subgoal_radius)
+        # Only a sub-goal that was out of reach when it was set can be reached: a sub-goal set
+        # within the radius would pay the bonus for a STOP on the spot.
+        reached = stopped & (d_sub < cfg.subgoal_radius) & (self.subgoal_dist0[rows] >= cfg.subgoal_radius)
         ex_r += cfg.subgoal_reward * reached
         pl_r = progress_reward(d_goal_prev, sim.distance_to_goal[rows], collided, cfg)
         out.rewards[rows, EXECUTOR] += ex_r.astype(np.float32)

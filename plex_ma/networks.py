@@ -74,8 +74,11 @@ class Planner(nn.Module):
 
     ``goal_prior`` (on by default in the trainer, ``--no-planner-goal-prior`` turns it off)
     makes the sub-goal head residual on the goal vector: mean = (min(goal distance,
-    ``prior_distance``), goal direction) + the head's output (1.5 m: what the executor can
-    cover in N_EX = 10 actions after a few turns), and initialises the stop head so that
+    ``prior_distance``), goal direction clipped to +-``prior_angle``) + the head's output.
+    The defaults, 1.5 m and 0.5 rad, are what the executor can reach in N_EX = 10 actions
+    (3 turns of 10 deg, 6 moves of 0.25 m, STOP): turning in place earns the executor
+    nothing, so a sub-goal behind the agent teaches it to STOP at once, and a goal behind
+    is better approached on an arc of reachable sub-goals. and initialises the stop head so that
     an untrained planner stops near the goal (p(stop) ~0.5 at 0.1 m, ~0.12 at 0.2 m, <2% past
     0.3 m). The layers and distributions are the paper's; only the starting point differs.
     Without it an untrained planner sends sub-goals in random directions, the executor's
@@ -86,10 +89,10 @@ class Planner(nn.Module):
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
                  map_size: int = 32, init_log_std: float = 0.0, init_stop_prob: float = 0.02,
-                 goal_prior: bool = False, prior_distance: float = 1.5):
+                 goal_prior: bool = False, prior_distance: float = 1.5, prior_angle: float = 0.5):
         super().__init__()
         self.eli_dim, self.use_eli, self.rho_max, self.goal_prior = eli_dim, use_eli, rho_max, goal_prior
-        self.prior_distance = min(prior_distance, rho_max)
+        self.prior_distance, self.prior_angle = min(prior_distance, rho_max), prior_angle
         self.convs = nn.Sequential(
             layer_init(nn.Conv2d(ego_channels, channels[0], 4, stride=2)), nn.ReLU(),
             layer_init(nn.Conv2d(channels[0], channels[1], 3, stride=1)), nn.ReLU(),
@@ -134,7 +137,9 @@ class Planner(nn.Module):
         mean = self.subgoal_mean(h)
         if self.goal_prior:
             goal = _as_tensor(obs["goal"], mean.device, torch.float32)
-            mean = mean + torch.stack([goal[:, 0].clamp(max=self.prior_distance), goal[:, 1]], dim=1)
+            prior = torch.stack([goal[:, 0].clamp(max=self.prior_distance),
+                                 goal[:, 1].clamp(-self.prior_angle, self.prior_angle)], dim=1)
+            mean = mean + prior
         subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
         return stop, subgoal, self.critic(h).squeeze(-1)
 

@@ -192,6 +192,12 @@ def test_rewards_match_the_rules():
     env.step(executor_action(0))  # STOP within 0.5 m of the sub-goal: +1, and the turn ends
     assert env.rewards["executor"] == pytest.approx(1.0 - 0.01, abs=0.02)
     assert env.agent_selection == "planner"
+    # A sub-goal set within reach earns no bonus: a STOP on the spot is not a reach.
+    env.step(planner_action(0, 0.3, 0.0))
+    assert w.subgoal_dist[0] < 0.5
+    env.step(executor_action(0))
+    assert env.rewards["executor"] == pytest.approx(-0.01, abs=1e-6)
+    assert env.agent_selection == "planner"
 
 
 def test_subgoal_distance_is_the_geodesic_after_every_action():

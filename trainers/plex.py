@@ -232,7 +232,7 @@ class PlexTrainer(Trainer):
         if self.warm_env:
             kw |= {"scenes": cfg.warmup_scenes, "num_scenes": None, "max_steps": cfg.warmup_max_steps}
         return PlexVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["executor"] + self.dist.seed_offset,
-                             n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, **kw)
+                             n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, subgoal_radius=cfg.subgoal_radius, **kw)
 
     def _start_episodes(self) -> torch.Tensor:
         """Reset the worlds and the per-world bookkeeping; returns the executor's memory."""
