@@ -76,6 +76,8 @@ class TrainConfig:
     """PPO clip range"""
     entropy_coef: float = 0.01
     """entropy bonus weight"""
+    planner_entropy_coef: float | None = None
+    """PLEX only: the planner's entropy bonus (None: --entropy-coef); 0 is CleanRL's choice for Gaussian actions"""
     value_coef: float = 0.5
     """value loss weight"""
     max_grad_norm: float = 0.5
@@ -162,6 +164,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
     need(0 < cfg.subgoal_radius < 5, "subgoal_radius", "must be in (0, 5) metres")
+    need(cfg.planner_entropy_coef is None or cfg.planner_entropy_coef >= 0, "planner_entropy_coef", "must be >= 0")
     need(cfg.rho_max > 0.5, "rho_max", "must be above 0.5 m")
     need(0.5 < cfg.random_subgoal_distance <= cfg.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")

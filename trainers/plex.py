@@ -343,7 +343,10 @@ class PlexTrainer(Trainer):
                 dones=torch.zeros(m, dtype=torch.bool))
         buf.data["advantages"] = torch.cat(adv)[None]
         buf.data["returns"] = torch.cat(ret)[None]
-        stats = ppo_update(self.planner, buf, self.opts["planner"], self.ppo, self.gen)
+        ppo = self.ppo
+        if self.cfg.planner_entropy_coef is not None:
+            ppo = dataclasses.replace(ppo, ent_coef=self.cfg.planner_entropy_coef)
+        stats = ppo_update(self.planner, buf, self.opts["planner"], ppo, self.gen)
         self.updates["planner"] += 1
         return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": m}
 
