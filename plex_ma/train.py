@@ -25,7 +25,11 @@ from plex_ma.config import parse
 
 
 def main(argv: list[str] | None = None) -> dict:
-    cfg = parse(argv)
+    try:
+        cfg = parse(argv)
+    except ValueError as e:  # a bad value: one line naming the flag, no traceback
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
     from plex_ma.trainers import distributed
     from plex_ma.trainers.plex import make_trainer
 

@@ -158,6 +158,11 @@ def test_cli_help_and_bad_config(capsys):
         parse(["--preset", "smoke", "--num-envs", "0"])
     cfg = parse(["--preset", "smoke", "--num-envs", "3"])
     assert cfg.num_envs == 3 and cfg.total_steps == preset_defaults("smoke").total_steps
+    from plex_ma.train import main as train_main
+
+    with pytest.raises(SystemExit) as e:  # the CLI: exit status 2 and one line naming the flag
+        train_main(["--preset", "smoke", "--planner-entropy-coef", "-1"])
+    assert e.value.code == 2 and "--planner-entropy-coef" in capsys.readouterr().err
 
 
 def test_evaluate_cli_writes_json(tmp_path):
