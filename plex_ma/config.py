@@ -24,6 +24,8 @@ class TrainConfig:
     """pass the executor's ELI to the planner (--no-eli: the paper's ablation)"""
     planner_goal_prior: bool = False
     """PLEX only: start the planner goal-directed (sub-goal head residual on the goal vector, stop head initialised to fire near the goal); off by default: it learnt worse than the paper's plain heads in our measurements (README)"""
+    planner_stop_within: float | None = None
+    """PLEX only: the planner may stop only while its goal vector reads closer than this (m); None: anywhere (the paper)"""
     planner: Literal["learn", "random"] = "learn"
     """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping)"""
     random_subgoal_distance: float = 2.0
@@ -165,6 +167,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
     need(0 < cfg.subgoal_radius < 5, "subgoal_radius", "must be in (0, 5) metres")
     need(cfg.planner_entropy_coef is None or cfg.planner_entropy_coef >= 0, "planner_entropy_coef", "must be >= 0")
+    need(cfg.planner_stop_within is None or cfg.planner_stop_within > 0, "planner_stop_within", "must be > 0")
     need(cfg.rho_max > 0.5, "rho_max", "must be above 0.5 m")
     need(0.5 < cfg.random_subgoal_distance <= cfg.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")

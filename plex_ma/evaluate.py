@@ -35,7 +35,7 @@ def load_policies(path: str | Path) -> tuple[TrainConfig, dict]:
     """The config and networks stored in a checkpoint (loaded with ``weights_only=True``)."""
     state = load_checkpoint(path)
     known = {f.name for f in dataclasses.fields(TrainConfig)}
-    saved = {"planner_goal_prior": False, **state["config"]}  # checkpoints from before the prior existed
+    saved = {"planner_goal_prior": False, "planner_stop_within": None, **state["config"]}  # older checkpoints
     cfg = TrainConfig(**{k: v for k, v in saved.items() if k in known})
     nets = build_policies(cfg)
     try:

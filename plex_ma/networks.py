@@ -84,15 +84,21 @@ class Planner(nn.Module):
     Without it an untrained planner sends sub-goals in random directions, the executor's
     turns make no progress, and the planner learns that stopping at once is best (an
     unsuccessful stop costs nothing).
+
+    ``stop_within`` (m, default None: the paper's planner) masks the stop action while the
+    planner's own goal reading is farther than that: the policy can then only end an
+    episode near the goal, and cannot fall into the early-stop optimum.
     """
 
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
                  map_size: int = 32, init_log_std: float = 0.0, init_stop_prob: float = 0.02,
-                 goal_prior: bool = False, prior_distance: float = 1.5, prior_angle: float = 0.5):
+                 goal_prior: bool = False, prior_distance: float = 1.5, prior_angle: float = 0.5,
+                 stop_within: float | None = None):
         super().__init__()
         self.eli_dim, self.use_eli, self.rho_max, self.goal_prior = eli_dim, use_eli, rho_max, goal_prior
         self.prior_distance, self.prior_angle = min(prior_distance, rho_max), prior_angle
+        self.stop_within = stop_within
         self.convs = nn.Sequential(
             layer_init(nn.Conv2d(ego_channels, channels[0], 4, stride=2)), nn.ReLU(),
             layer_init(nn.Conv2d(channels[0], channels[1], 3, stride=1)), nn.ReLU(),
@@ -133,7 +139,12 @@ class Planner(nn.Module):
     def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
         """(stop distribution, sub-goal distribution over raw (rho, theta), value (B,))."""
         h = self.features(obs)
-        stop = Categorical(logits=self.stop_logits(h))
+        logits = self.stop_logits(h)
+        if self.stop_within is not None:
+            # the stop action is masked out while the goal reads farther than stop_within
+            far = _as_tensor(obs["goal"], logits.device, torch.float32)[:, 0] > self.stop_within
+            logits = torch.stack([logits[:, 0], logits[:, 1].masked_fill(far, -1e9)], dim=1)
+        stop = Categorical(logits=logits)
         mean = self.subgoal_mean(h)
         if self.goal_prior:
             goal = _as_tensor(obs["goal"], mean.device, torch.float32)

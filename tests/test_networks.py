@@ -212,3 +212,18 @@ def test_planner_goal_prior_starts_goal_directed():
     plain = Planner(rho_max=4.0, channels=(8, 8), hidden=64, goal_prior=False)
     mean = plain(obs)[1].mean
     assert mean[:, 1].abs().max() < 0.2  # straight ahead whatever the goal's direction
+
+
+def test_planner_stop_within_masks_far_stops():
+    """--planner-stop-within: no stop is ever sampled (or has probability) while the goal
+    reads farther; near the goal the stop head is untouched, and log-probs stay finite."""
+    torch.manual_seed(0)
+    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64, stop_within=1.0, init_stop_prob=0.5)
+    obs = pl.example_obs(200)
+    obs["goal"][:, 0] = torch.linspace(0.0, 4.0, 200)
+    far = obs["goal"][:, 0] > 1.0
+    stop_d, _, _ = pl(obs)
+    assert (stop_d.probs[far, 1] == 0).all() and (stop_d.probs[~far, 1] > 0.3).all()
+    out = pl.act(obs)
+    assert (out["stop"][far] == 0).all() and out["stop"][~far].any()
+    assert torch.isfinite(pl.evaluate_actions(obs, out["stop"], out["subgoal"])[0]).all()

@@ -54,7 +54,8 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     """The networks of a method: {'planner', 'executor'} for PLEX, {'policy'} for flat PPO."""
     memory = cfg.method.split("-")[1]
     if cfg.method.startswith("plex"):
-        return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max, goal_prior=cfg.planner_goal_prior),
+        return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max, goal_prior=cfg.planner_goal_prior,
+                                   stop_within=cfg.planner_stop_within),
                 "executor": Executor(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden)}
     return {"policy": FlatPolicy(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
@@ -125,7 +126,8 @@ class Trainer:
         if state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}")
         saved = state["config"]
-        for key in ("method", "resolution", "eli", "smt_memory", "executor_hidden", "planner_goal_prior"):
+        for key in ("method", "resolution", "eli", "smt_memory", "executor_hidden", "planner_goal_prior",
+                    "planner_stop_within"):
             if saved.get(key) != getattr(self.cfg, key):
                 raise CheckpointError(f"the run dir's checkpoint has {key}={saved.get(key)!r} but this run asks "
                                       f"for {getattr(self.cfg, key)!r}; use another --run-dir")
