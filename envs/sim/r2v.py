@@ -43,7 +43,7 @@ Coordinates are image pixels, y pointing down. How a plan becomes a scene:
 **Navigable** (what :func:`validate_scene` checks, with the simulator's defaults: cells
 of 0.05 m and an agent of radius 0.1 m): the rasterised plan must have at least
 :data:`MIN_NAVIGABLE_AREA` square metres of navigable cells, and so must its largest
-8-connected navigable component. A connected region of 8 m^2 is more than 3 m across,
+navigable component (connected as the geodesic search moves). A connected region of 8 m^2 is more than 3 m across,
 so it holds episodes of the simulator's rules (geodesic distance 1 to 30 m). Smaller
 components (a closet behind a narrow door) may remain; the episode sampler only keeps
 connected start/goal pairs.

@@ -14,8 +14,9 @@ metres on a flat floor. Everything the simulator needs is derived from it once b
   agent is never inside an obstacle.
 * ``room``: room index per cell (connected free space with doors closed), used for
   per-room wall and floor colours.
-* ``component``: connected component of the navigable grid (8-connected), used to keep
-  episodes and sub-goals reachable.
+* ``component``: connected component of the navigable grid under the geodesic graph's
+  own connectivity (8 neighbours without corner cutting, which connects exactly what 4
+  neighbours connect), used to keep sub-goals reachable.
 
 Coordinates: x to the right, y up, headings counter-clockwise from +x. Cell ``(i, j)``
 covers ``x in [x0 + j*cs, x0 + (j+1)*cs)`` and ``y in [y0 + i*cs, y0 + (i+1)*cs)``.
@@ -304,7 +305,10 @@ def rasterize(scene: Scene, cell_size: float = CELL_SIZE, agent_radius: float = 
     near = ndimage.binary_dilation(blocking, structure=np.ones((3, 3), bool))
     edt = ndimage.distance_transform_edt(~near) * cell_size
     nav = (edt >= agent_radius - 1e-9) & ~blocking
-    comp, ncomp = ndimage.label(nav, structure=np.ones((3, 3)))
+    # Components as the geodesic search moves: a diagonal step needs both side cells free,
+    # so only 4-neighbour connections join cells (a full 3x3 structure would join cells
+    # that touch only at a corner, which no path can pass).
+    comp, ncomp = ndimage.label(nav)
     comp = comp.astype(np.int32) - 1
     if ncomp == 0:
         raise SceneError(f"scene {scene.scene_id!r}: no navigable space for an agent of radius {agent_radius} m")
