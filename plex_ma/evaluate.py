@@ -26,7 +26,7 @@ from plex_ma.envs.rules import CLOSE_FAR_SPLIT, PLANNER
 from plex_ma.envs.sim import generate_episodes, load_episodes
 from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
 from plex_ma.trainers.checkpoint import CheckpointError, load_checkpoint
-from plex_ma.trainers.plex import build_policies, env_kwargs
+from plex_ma.trainers.plex import build_policies, env_kwargs, saved_config
 
 METRICS = ("success", "spl", "reward", "distance_to_goal", "collisions")
 
@@ -35,8 +35,7 @@ def load_policies(path: str | Path) -> tuple[TrainConfig, dict]:
     """The config and networks stored in a checkpoint (loaded with ``weights_only=True``)."""
     state = load_checkpoint(path)
     known = {f.name for f in dataclasses.fields(TrainConfig)}
-    saved = {"planner_goal_prior": False, "planner_stop_within": None, **state["config"]}  # older checkpoints
-    cfg = TrainConfig(**{k: v for k, v in saved.items() if k in known})
+    cfg = TrainConfig(**{k: v for k, v in saved_config(state).items() if k in known})
     nets = build_policies(cfg)
     try:
         for k, m in nets.items():

@@ -72,18 +72,14 @@ class Planner(nn.Module):
     to [0, rho_max] and theta is wrapped to [-pi, pi] (wrapping, unlike clipping, keeps the
     direction the sample points to).
 
-    ``goal_prior`` (on by default in the trainer, ``--no-planner-goal-prior`` turns it off)
-    makes the sub-goal head residual on the goal vector: mean = (min(goal distance,
+    ``goal_prior`` (``--planner-goal-prior``; off by default, as it learnt worse than the
+    plain heads in our measurements, README) starts the planner goal-directed. The sub-goal
+    head becomes residual on the goal vector: mean = (min(goal distance,
     ``prior_distance``), goal direction clipped to +-``prior_angle``) + the head's output.
     The defaults, 1.5 m and 0.5 rad, are what the executor can reach in N_EX = 10 actions
-    (3 turns of 10 deg, 6 moves of 0.25 m, STOP): turning in place earns the executor
-    nothing, so a sub-goal behind the agent teaches it to STOP at once, and a goal behind
-    is better approached on an arc of reachable sub-goals. and initialises the stop head so that
-    an untrained planner stops near the goal (p(stop) ~0.5 at 0.1 m, ~0.12 at 0.2 m, <2% past
-    0.3 m). The layers and distributions are the paper's; only the starting point differs.
-    Without it an untrained planner sends sub-goals in random directions, the executor's
-    turns make no progress, and the planner learns that stopping at once is best (an
-    unsuccessful stop costs nothing).
+    (3 turns of 10 deg, 6 moves of 0.25 m, STOP). The stop head starts to fire near the
+    goal (p(stop) ~0.5 at 0.1 m, ~0.12 at 0.2 m, <2% past 0.3 m). The layers and
+    distributions are the paper's; only the starting point differs.
 
     ``stop_within`` (m, default None: the paper's planner) masks the stop action while the
     planner's own goal reading is farther than that: the policy can then only end an

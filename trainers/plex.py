@@ -41,6 +41,13 @@ from .logger import MetricLogger
 from .ppo import PPOConfig, RolloutBuffer, compute_gae, ppo_update
 
 CHECKPOINT_FORMAT = 1
+# Config fields added after checkpoints were first written, with the value older ones had.
+LEGACY_CONFIG = {"planner_goal_prior": False, "planner_stop_within": None}
+
+
+def saved_config(state: dict) -> dict:
+    """A checkpoint's config, with the fields older checkpoints lack filled in."""
+    return {**LEGACY_CONFIG, **state["config"]}
 
 
 def env_kwargs(cfg: TrainConfig, split: str = "train") -> dict:
@@ -125,7 +132,7 @@ class Trainer:
 
         if state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}")
-        saved = state["config"]
+        saved = saved_config(state)
         for key in ("method", "resolution", "eli", "smt_memory", "executor_hidden", "planner_goal_prior",
                     "planner_stop_within"):
             if saved.get(key) != getattr(self.cfg, key):

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
 from . import kernels as K
@@ -95,7 +94,6 @@ class BatchedSim:
         self.amap = np.zeros((n, self.amap_size, self.amap_size) if egomap else (n, 1, 1), np.uint8)
         self.amap_origin = np.zeros((n, 2), np.float64)
         self.geo = Geodesics(bank)
-        self._astar_scratch = None
         self._track = None
         self._stride = max(1, R // 32)
         self._all = np.ones(n, np.bool_)
@@ -197,27 +195,10 @@ class BatchedSim:
         ang = (ang + math.pi) % (2 * math.pi) - math.pi
         return np.stack([dist, ang], 1).astype(np.float32)
 
-    def geodesic_to(self, targets: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        """Geodesic distance from each world's agent to a world-frame target (A*), for
-        ``rows``; returns (N,) with entries for ``rows`` filled (``inf`` if unreachable)."""
-        b = self.bank
-        g = self.geo
-        out = np.full(self.n, np.inf)
-        rows = np.asarray(rows, np.int64)
-        if self._astar_scratch is None:  # one row of scratch per numba thread
-            nt, cells = numba.config.NUMBA_NUM_THREADS, b.max_cells
-            self._astar_scratch = (np.empty((nt, cells)), np.zeros((nt, cells), np.int64), np.empty((nt, cells)),
-                                   np.empty((nt, cells), np.int64), np.empty((nt, cells), np.int64))
-        gs, st, hk, hv, hp = self._astar_scratch
-        g._stamp = K.astar_batch(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos,
-                                 np.asarray(targets, np.float64), rows, gs, st, g._stamp, hk, hv, hp, out)
-        out[out >= K.INF] = np.inf
-        return out
-
     def track_distance(self, targets: np.ndarray, rows: np.ndarray, new_target: bool) -> np.ndarray:
         """Geodesic distance from each agent in ``rows`` to a target that stays fixed while
         the agent moves (a sub-goal); ``new_target`` starts tracking ``targets[rows]`` from
-        the agents' current positions. Same values as :meth:`geodesic_to` (up to float32
+        the agents' current positions. Same values as :meth:`geodesic` (A*; up to float32
         rounding of the goal field, < 1e-4 m), but each query resumes one search per target
         (a resumable reverse A*, with the episode's goal field as a landmark) instead of a
         fresh A*. The worlds must have been reset (their goal fields are used).

@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 import sys
 
-import numba
 import numpy as np
 from numba import njit, prange
 
@@ -479,125 +478,28 @@ def field_lookup_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, fields, 
                                pos[wi, 0], pos[wi, 1])
 
 
-@njit(cache=True)
-def astar(nav, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp, hk, hv, hpos):
-    """Geodesic distance between two points by A* over the same graph as the fields.
-
-    ``g``/``stamp``/``hk``/``hv``/``hpos`` are scratch arrays of at least ``h*w`` entries;
-    ``stamp`` marks which entries of ``g`` and ``hpos`` are valid for this call, so the
-    scratch never needs clearing. Returns INF when the points are not connected.
-    """
-    diag = cs * math.sqrt(2.0)
-    size = 0
-    r0, c0 = _block(ox, oy, cs, sx, sy)
-    for dr in range(2):
-        for dc in range(2):
-            r = r0 + dr
-            c = c0 + dc
-            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
-                continue
-            cx = ox + (c + 0.5) * cs
-            cy = oy + (r + 0.5) * cs
-            v = r * w + c
-            d = math.sqrt((cx - sx) ** 2 + (cy - sy) ** 2)
-            stamp[v] = cur_stamp
-            g[v] = d
-            hpos[v] = -1
-            size = _heap_push(hk, hv, hpos, size, d + math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2), v)
-    tr0, tc0 = _block(ox, oy, cs, gx, gy)
-    best = INF
-    while size > 0:
-        f, v, size = _heap_pop(hk, hv, hpos, size)
-        if f >= best:
-            break
-        d = g[v]
-        r = v // w
-        c = v % w
-        if r - tr0 >= 0 and r - tr0 < 2 and c - tc0 >= 0 and c - tc0 < 2:
-            cx = ox + (c + 0.5) * cs
-            cy = oy + (r + 0.5) * cs
-            t = d + math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2)
-            if t < best:
-                best = t
-        for dr in range(-1, 2):
-            for dc in range(-1, 2):
-                if dr == 0 and dc == 0:
-                    continue
-                rr = r + dr
-                cc = c + dc
-                if rr < 0 or rr >= h or cc < 0 or cc >= w:
-                    continue
-                if nav[off + rr * w + cc] == 0:
-                    continue
-                if dr != 0 and dc != 0:
-                    if nav[off + r * w + cc] == 0 or nav[off + rr * w + c] == 0:
-                        continue
-                    nd = d + diag
-                else:
-                    nd = d + cs
-                u = rr * w + cc
-                if stamp[u] != cur_stamp:
-                    stamp[u] = cur_stamp
-                    g[u] = INF
-                    hpos[u] = -1
-                if nd < g[u]:
-                    g[u] = nd
-                    ux = ox + (cc + 0.5) * cs
-                    uy = oy + (rr + 0.5) * cs
-                    fu = nd + math.sqrt((ux - gx) ** 2 + (uy - gy) ** 2)
-                    if hpos[u] == -1:
-                        size = _heap_push(hk, hv, hpos, size, fu, u)
-                    elif hpos[u] >= 0:
-                        _heap_decrease(hk, hv, hpos, hpos[u], fu)
-    return best
-
-
-@njit(cache=True, parallel=True)
-def astar_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, rows, g, stamp, stamp0, hk, hv,
-                hpos, out):
-    """A* distance from ``pos[r]`` to ``targets[r]`` for each ``r`` in ``rows``, in parallel:
-    the scratch arrays have one row per numba thread (``(threads, cells)``). Every search of
-    the call gets its own stamp ``stamp0 + k + 1``; returns the last stamp used."""
-    for k in prange(rows.shape[0]):
-        t = numba.get_thread_id()
-        r = rows[k]
-        s = scene_idx[r]
-        out[r] = astar(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, pos[r, 0], pos[r, 1],
-                       targets[r, 0], targets[r, 1], g[t], stamp[t], stamp0 + k + 1, hk[t], hv[t], hpos[t])
-    return stamp0 + rows.shape[0]
-
-
-# Distance to a fixed target from a moving agent: a *resumable reverse A** (Silver 2005).
-# The search runs from the target towards the agent's position when the target was set
-# (the anchor; Euclidean heuristic, consistent on this graph). A cell's g is exact once it
-# is closed, whatever the later queries are, so a query from the agent's new position only
-# resumes the search until the cells around that position are settled. An executor turn
-# costs about one A* instead of one per step, and the goal field as a landmark (ALT) keeps
-# that one search narrow when the sub-goal lies towards the goal. State per world lives in ``g``, ``stamp``,
-# ``hk``, ``hv``, ``hpos`` (one row per world); ``hpos == -2`` marks a closed cell.
-
-
 @njit(cache=True, inline="always")
-def _track_h(F, v, x, y, ax, ay, fa, slack):
-    """Heuristic from cell ``v`` (centre x, y) to the anchor: the larger of the Euclidean
-    distance and the landmark bound |F[v] - F(anchor)| - slack, where F is the episode's
-    goal field (ALT, Goldberg & Harrelson 2005). Both are consistent; ``slack`` (1.5 cells)
-    covers the point-to-cell links, so the bound never exceeds the true distance."""
+def _heuristic(F, v, x, y, ax, ay, fa, slack):
+    """A* heuristic from cell ``v`` (centre x, y) to the point (ax, ay): the larger of the
+    Euclidean distance and, when ``fa < INF``, the landmark bound |F[v] - fa| - slack, where
+    F is a distance field and fa its value at (ax, ay) (ALT, Goldberg & Harrelson 2005).
+    Both are consistent; ``slack`` (1.5 cells) covers the point-to-cell links, so the bound
+    never exceeds the true distance. With ``fa = INF`` it is the plain Euclidean heuristic."""
     e = math.sqrt((x - ax) ** 2 + (y - ay) ** 2)
-    fv = F[v]
-    if fv < INF and fa < INF:
-        l = abs(fv - fa) - slack
-        if l > e:
-            return l
+    if fa < INF:
+        fv = F[v]
+        if fv < INF:
+            l = abs(fv - fa) - slack
+            if l > e:
+                return l
     return e
 
 
-@njit(cache=True)
-def track_init(nav, off, h, w, ox, oy, cs, tx, ty, g, stamp, cur, hk, hv, hpos, ax, ay, F, fa):
-    """Start a reverse search from the target (tx, ty) towards the anchor (ax, ay); returns
-    the heap size."""
-    size = 0
-    r0, c0 = _block(ox, oy, cs, tx, ty)
+@njit(cache=True, inline="always")
+def _seed(nav, off, h, w, ox, oy, cs, px, py, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, slack):
+    """Open the navigable centres of the 2x2 block around (px, py) with g = their distance
+    to it, keyed towards (ax, ay); returns the heap size."""
+    r0, c0 = _block(ox, oy, cs, px, py)
     for dr in range(2):
         for dc in range(2):
             r = r0 + dr
@@ -608,17 +510,95 @@ def track_init(nav, off, h, w, ox, oy, cs, tx, ty, g, stamp, cur, hk, hv, hpos, 
             cy = oy + (r + 0.5) * cs
             v = r * w + c
             stamp[v] = cur
-            g[v] = math.sqrt((cx - tx) ** 2 + (cy - ty) ** 2)
+            g[v] = math.sqrt((cx - px) ** 2 + (cy - py) ** 2)
             hpos[v] = -1
-            size = _heap_push(hk, hv, hpos, size, g[v] + _track_h(F, v, cx, cy, ax, ay, fa, 1.5 * cs), v)
+            size = _heap_push(hk, hv, hpos, size, g[v] + _heuristic(F, v, cx, cy, ax, ay, fa, slack), v)
     return size
+
+
+@njit(cache=True, inline="always")
+def _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, slack):
+    """Relax the 8 neighbours of the closed cell ``v`` (no corner cutting); keys are
+    g + heuristic towards (ax, ay). ``stamp`` marks which entries of ``g``/``hpos`` belong
+    to the search ``cur``, so the scratch never needs clearing. Returns the heap size."""
+    diag = cs * math.sqrt(2.0)
+    d = g[v]
+    r = v // w
+    c = v % w
+    for dr in range(-1, 2):
+        for dc in range(-1, 2):
+            if dr == 0 and dc == 0:
+                continue
+            rr = r + dr
+            cc = c + dc
+            if rr < 0 or rr >= h or cc < 0 or cc >= w:
+                continue
+            if nav[off + rr * w + cc] == 0:
+                continue
+            if dr != 0 and dc != 0:
+                if nav[off + r * w + cc] == 0 or nav[off + rr * w + c] == 0:
+                    continue
+                nd = d + diag
+            else:
+                nd = d + cs
+            u = rr * w + cc
+            if stamp[u] != cur:
+                stamp[u] = cur
+                g[u] = INF
+                hpos[u] = -1
+            if nd < g[u]:
+                g[u] = nd
+                fu = nd + _heuristic(F, u, ox + (cc + 0.5) * cs, oy + (rr + 0.5) * cs, ax, ay, fa, slack)
+                if hpos[u] == -1:
+                    size = _heap_push(hk, hv, hpos, size, fu, u)
+                elif hpos[u] >= 0:
+                    _heap_decrease(hk, hv, hpos, hpos[u], fu)
+    return size
+
+
+@njit(cache=True)
+def astar(nav, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp, hk, hv, hpos):
+    """Geodesic distance between two points by A* over the same graph as the fields.
+
+    ``g``/``stamp``/``hk``/``hv``/``hpos`` are scratch arrays of at least ``h*w`` entries;
+    ``stamp`` marks which entries of ``g`` and ``hpos`` are valid for this call, so the
+    scratch never needs clearing. Returns INF when the points are not connected.
+    """
+    # Euclidean heuristic only: fa = INF switches the landmark term off (g stands in for F)
+    size = _seed(nav, off, h, w, ox, oy, cs, sx, sy, g, stamp, cur_stamp, hk, hv, hpos, 0, gx, gy, g, INF, 0.0)
+    tr0, tc0 = _block(ox, oy, cs, gx, gy)
+    best = INF
+    while size > 0:
+        f, v, size = _heap_pop(hk, hv, hpos, size)
+        if f >= best:
+            break
+        r = v // w
+        c = v % w
+        if r - tr0 >= 0 and r - tr0 < 2 and c - tc0 >= 0 and c - tc0 < 2:
+            cx = ox + (c + 0.5) * cs
+            cy = oy + (r + 0.5) * cs
+            t = g[v] + math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2)
+            if t < best:
+                best = t
+        size = _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur_stamp, hk, hv, hpos, size, gx, gy, g, INF, 0.0)
+    return best
+
+
+# Distance to a fixed target from a moving agent: a *resumable reverse A** (Silver 2005).
+# The search runs from the target towards the agent's position when the target was set
+# (the anchor; Euclidean heuristic, consistent on this graph). A cell's g is exact once it
+# is closed, whatever the later queries are, so a query from the agent's new position only
+# resumes the search until the cells around that position are settled. An executor turn
+# costs about one A* instead of one per step, and the goal field as a landmark (ALT) keeps
+# that one search narrow when the sub-goal lies towards the goal. State per world lives in
+# ``g``, ``stamp``, ``hk``, ``hv``, ``hpos`` (one row per world); ``hpos == -2`` marks a
+# closed cell.
 
 
 @njit(cache=True)
 def track_query(nav, off, h, w, ox, oy, cs, g, stamp, cur, hk, hv, hpos, size, ax, ay, px, py, out, wi, F, fa):
     """Geodesic distance from (px, py) to the search's target into ``out[wi]`` (INF if not
     connected), resuming the search as far as needed; returns the new heap size."""
-    diag = cs * math.sqrt(2.0)
     slack = 1.5 * cs
     r0, c0 = _block(ox, oy, cs, px, py)
     while True:
@@ -642,46 +622,14 @@ def track_query(nav, off, h, w, ox, oy, cs, g, stamp, cur, hk, hv, hpos, size, a
                     if t < best:
                         best = t
                 elif size > 0:
-                    t = f_top - _track_h(F, v, cx, cy, ax, ay, fa, slack) + tail
+                    t = f_top - _heuristic(F, v, cx, cy, ax, ay, fa, slack) + tail
                     if t < bound:
                         bound = t
         if bound >= best or size == 0:
             out[wi] = best
             return size
         f, v, size = _heap_pop(hk, hv, hpos, size)
-        d = g[v]
-        r = v // w
-        c = v % w
-        for dr in range(-1, 2):
-            for dc in range(-1, 2):
-                if dr == 0 and dc == 0:
-                    continue
-                rr = r + dr
-                cc = c + dc
-                if rr < 0 or rr >= h or cc < 0 or cc >= w:
-                    continue
-                if nav[off + rr * w + cc] == 0:
-                    continue
-                if dr != 0 and dc != 0:
-                    if nav[off + r * w + cc] == 0 or nav[off + rr * w + c] == 0:
-                        continue
-                    nd = d + diag
-                else:
-                    nd = d + cs
-                u = rr * w + cc
-                if stamp[u] != cur:
-                    stamp[u] = cur
-                    g[u] = INF
-                    hpos[u] = -1
-                if nd < g[u]:
-                    g[u] = nd
-                    ux = ox + (cc + 0.5) * cs
-                    uy = oy + (rr + 0.5) * cs
-                    fu = nd + _track_h(F, u, ux, uy, ax, ay, fa, slack)
-                    if hpos[u] == -1:
-                        size = _heap_push(hk, hv, hpos, size, fu, u)
-                    elif hpos[u] >= 0:
-                        _heap_decrease(hk, hv, hpos, hpos[u], fu)
+        size = _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, slack)
 
 
 @njit(cache=True, parallel=True)
@@ -700,8 +648,8 @@ def track_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, a
             anchors[r, 0] = pos[r, 0]
             anchors[r, 1] = pos[r, 1]
             fa[r] = field_lookup(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, fields[r], pos[r, 0], pos[r, 1])
-            size[r] = track_init(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, targets[r, 0], targets[r, 1],
-                                 g[r], stamp[r], cur[r], hk[r], hv[r], hpos[r], pos[r, 0], pos[r, 1], fields[r], fa[r])
+            size[r] = _seed(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, targets[r, 0], targets[r, 1], g[r],
+                            stamp[r], cur[r], hk[r], hv[r], hpos[r], 0, pos[r, 0], pos[r, 1], fields[r], fa[r], 1.5 * cs)
         size[r] = track_query(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, g[r], stamp[r], cur[r], hk[r],
                               hv[r], hpos[r], size[r], anchors[r, 0], anchors[r, 1], pos[r, 0], pos[r, 1], out, r,
                               fields[r], fa[r])
