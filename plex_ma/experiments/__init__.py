@@ -64,3 +64,5 @@ def default_out_dir(name: str) -> Path:
 # ----------------------------------------------------------------------- the registry
 register("fig3", "plex_ma.experiments.fig3", "Fig. 3: distance covered by a random policy vs. number of actions")
 register("prop1", "plex_ma.experiments.prop1", "Proposition 1: random-walk tail probabilities vs. Chernoff bounds")
+register("table1", "plex_ma.experiments.table1",
+         "Table 1, Fig. 4, Fig. 5a/b: the four methods and the no-ELI ablation at an equal step budget")
