@@ -255,12 +255,23 @@ def main(argv: list[str] | None = None) -> None:
     pt.add_argument("--num-envs", type=int, default=None, help="worlds (default: the preset's)")
     pt.add_argument("--resolution", type=int, default=None, help="image size (default: the preset's)")
     pt.add_argument("--seed", type=int, default=0)
+    pt.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a TrainConfig field, e.g. --set num_minibatches=4 (repeatable)")
     pt.add_argument("--json", action="store_true", help="print one JSON object")
     a = p.parse_args(argv)
     if a.what == "train":
         from plex_ma.bench_flops import bench_train
 
-        out = bench_train(a.preset, a.method, a.steps, a.num_envs, a.resolution, a.seed)
+        overrides = {}
+        for item in a.set:
+            key, sep, value = item.partition("=")
+            if not sep:
+                p.error(f"--set expects FIELD=VALUE, got {item!r}")
+            overrides[key.strip()] = value.strip()
+        try:
+            out = bench_train(a.preset, a.method, a.steps, a.num_envs, a.resolution, a.seed, overrides)
+        except ValueError as e:
+            p.error(str(e))
         out["machine"] = machine()
     elif a.what == "sim":
         out = bench_sim(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, a.num_scenes)

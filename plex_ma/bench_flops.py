@@ -57,13 +57,14 @@ def matmul_gflops(n: int = 1024, seconds: float = 0.5, dtype: torch.dtype = torc
 
 
 def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192, num_envs: int | None = None,
-                resolution: int | None = None, seed: int = 0) -> dict:
+                resolution: int | None = None, seed: int = 0, overrides: dict[str, str] | None = None) -> dict:
     """End-to-end training throughput of a short run (``python -m plex_ma.bench train``).
 
     Reports steps/s, the shares of wall time in simulation, inference and the update, the
     models' FLOPs per step, this machine's matmul GFLOP/s with the same torch threads, and
     the update's efficiency: the update's FLOPs (3x forward per sample per epoch) over its
-    wall time, divided by the matmul figure.
+    wall time, divided by the matmul figure. ``overrides`` sets further TrainConfig fields
+    from strings (``{"num_minibatches": "4"}``); an unknown field raises ValueError.
     """
     import dataclasses
     import tempfile
@@ -77,6 +78,22 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
         over["num_envs"] = num_envs
     if resolution:
         over["resolution"] = resolution
+    fields = {f.name: f for f in dataclasses.fields(cfg)}
+    for key, text in (overrides or {}).items():
+        if key not in fields:
+            raise ValueError(f"--set: TrainConfig has no field {key!r}")
+        current = getattr(cfg, key)
+        if isinstance(current, bool):
+            if text.lower() not in ("true", "false", "1", "0"):
+                raise ValueError(f"--set {key}: expected true or false, got {text!r}")
+            over[key] = text.lower() in ("true", "1")
+        elif isinstance(current, (int, float)):
+            try:
+                over[key] = type(current)(text)
+            except ValueError:
+                raise ValueError(f"--set {key}: expected a {type(current).__name__}, got {text!r}") from None
+        else:
+            over[key] = text
     with tempfile.TemporaryDirectory() as d:
         cfg = validate(dataclasses.replace(cfg, run_dir=d, **over))
         trainer = make_trainer(cfg, log=True)
@@ -98,4 +115,4 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
             "share_sim": result["perf/share_sim"], "share_inference": result["perf/share_inference"],
             "share_update": result["perf/share_update"], "model_flops_per_step": flops,
             "matmul_gflops": peak, "update_gflops": achieved, "update_efficiency": achieved / peak,
-            "torch_threads": torch.get_num_threads()}
+            "torch_threads": torch.get_num_threads(), "overrides": dict(overrides or {})}
