@@ -41,19 +41,24 @@ def model_flops_per_step(model: torch.nn.Module, batch: int = 1, by_module: bool
     return total, modules
 
 
-def matmul_gflops(n: int = 1024, seconds: float = 0.5, dtype: torch.dtype = torch.float32) -> float:
-    """Sustained GFLOP/s of (n x n) @ (n x n) matmuls on the CPU with torch's current threads,
-    timed for about ``seconds`` after one warm-up."""
+def matmul_gflops(n: int = 1024, seconds: float = 0.3, trials: int = 5, dtype: torch.dtype = torch.float32) -> float:
+    """Peak GFLOP/s of (n x n) @ (n x n) matmuls on the CPU with torch's current threads: the
+    best of ``trials`` runs of about ``seconds`` each, after one warm-up. (A single run
+    varies by up to 2x on a shared machine; the best run is the machine's peak.)"""
     a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
     out = torch.empty(n, n, dtype=dtype)
     torch.mm(a, b, out=out)
-    reps, t0 = 0, time.perf_counter()
-    while True:
-        torch.mm(a, b, out=out)
-        reps += 1
-        dt = time.perf_counter() - t0
-        if dt >= seconds:
-            return 2 * n ** 3 * reps / dt / 1e9
+    best = 0.0
+    for _ in range(trials):
+        reps, t0 = 0, time.perf_counter()
+        while True:
+            torch.mm(a, b, out=out)
+            reps += 1
+            dt = time.perf_counter() - t0
+            if dt >= seconds:
+                break
+        best = max(best, 2 * n ** 3 * reps / dt / 1e9)
+    return best
 
 
 def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192, num_envs: int | None = None,
@@ -113,6 +118,7 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
     return {"benchmark": "train", "method": method, "preset": preset, "num_envs": cfg.num_envs,
             "resolution": cfg.resolution, "steps": steps, "steps_per_second": result["perf/fps"],
             "share_sim": result["perf/share_sim"], "share_inference": result["perf/share_inference"],
-            "share_update": result["perf/share_update"], "model_flops_per_step": flops,
+            "share_update": result["perf/share_update"], "share_other": result["perf/share_other"],
+            "model_flops_per_step": flops,
             "matmul_gflops": peak, "update_gflops": achieved, "update_efficiency": achieved / peak,
             "torch_threads": torch.get_num_threads(), "overrides": dict(overrides or {})}

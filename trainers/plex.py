@@ -197,11 +197,13 @@ class Trainer:
         """Throughput and time shares, then logging, checkpoint, recording and progress bar
         at their intervals. Returns the metrics if they were logged."""
         cfg = self.cfg
-        sps = (self.step - s_start) / max(time.perf_counter() - t_start, 1e-9)
+        wall = max(time.perf_counter() - t_start, 1e-9)
+        sps = (self.step - s_start) / wall
         metrics["perf/fps"] = sps
-        tot = sum(timing.values())
+        # shares of the wall time since the start; "other" is logging, buffers, checkpoints
         for k, v in timing.items():
-            metrics[f"perf/share_{k}"] = v / max(tot, 1e-9)
+            metrics[f"perf/share_{k}"] = v / wall
+        metrics["perf/share_other"] = max(0.0, 1.0 - sum(timing.values()) / wall)
         logged = None
         if n_updates % cfg.log_interval == 0:
             self.log(metrics)
@@ -263,20 +265,25 @@ class PlexTrainer(Trainer):
         return {"stop": torch.zeros(k, dtype=torch.long), "subgoal": sub, "subgoal_env": sub,
                 "log_prob": torch.zeros(k), "value": torch.zeros(k)}
 
-    def _planner_decisions(self) -> None:
-        """Decide for every world whose turn is the planner's, until none is left."""
+    def _planner_decisions(self) -> float:
+        """Decide for every world whose turn is the planner's, until none is left. Returns
+        the seconds spent inside the env (the rest is the planner's inference)."""
         n = self.cfg.num_envs
+        env_seconds = 0.0
         while True:
             rows = np.flatnonzero(self.turn == PLANNER)
             if len(rows) == 0:
-                return
+                return env_seconds
             obs = {k: v[rows] for k, v in self.pl_obs.items()}
             if self.cfg.planner == "random" or self._warming_up():
                 out = self._random_decisions(rows)
                 stop = np.zeros(n, np.int64)
                 sub = np.zeros((n, 2), np.float32)
                 sub[rows] = out["subgoal_env"].numpy()
-                self._after_step(self.env.step(stop=stop, subgoal=sub))
+                t0 = time.perf_counter()
+                res = self.env.step(stop=stop, subgoal=sub)
+                env_seconds += time.perf_counter() - t0
+                self._after_step(res)
                 self.starts[rows] = True
                 continue
             out = self.planner.act(obs)
@@ -290,7 +297,9 @@ class PlexTrainer(Trainer):
             sub = np.zeros((n, 2), np.float32)
             stop[rows] = out["stop"].numpy()
             sub[rows] = out["subgoal_env"].numpy()
+            t0 = time.perf_counter()
             res = self.env.step(stop=stop, subgoal=sub)
+            env_seconds += time.perf_counter() - t0
             self._after_step(res)
             self.starts[rows] = True  # a new sub-goal (or episode) begins an executor turn
 
@@ -382,7 +391,7 @@ class PlexTrainer(Trainer):
             buf = RolloutBuffer(T, n)
             for t in range(T):
                 t0 = time.perf_counter()
-                self._planner_decisions()
+                planner_env_seconds = self._planner_decisions()
                 t1 = time.perf_counter()
                 if t == 0:
                     buf.initial_state = state.clone()
@@ -393,6 +402,7 @@ class PlexTrainer(Trainer):
                 action = out["action"].numpy()
                 t2 = time.perf_counter()
                 obs_t = {k: np.array(v) for k, v in self.ex_obs.items()}
+                t2 = time.perf_counter()
                 res = self.env.step(action=action, eli=out["eli"].numpy())
                 t3 = time.perf_counter()
                 ended = res.terminated | res.truncated
@@ -420,8 +430,9 @@ class PlexTrainer(Trainer):
                 self.starts |= ended
                 self._after_step(res)
                 self.step += n * self.dist.world_size  # total over all workers
-                timing["inference"] += (t2 - t1) + (time.perf_counter() - t3)
-                timing["sim"] += (t1 - t0) + (t3 - t2)
+                # sim: time inside env.step; inference: the networks and the bookkeeping
+                timing["inference"] += (t1 - t0 - planner_env_seconds) + (t2 - t1) + (time.perf_counter() - t3)
+                timing["sim"] += planner_env_seconds + (t3 - t2)
             # V(o_T) for worlds still inside a turn (their memory continues)
             rows = np.flatnonzero(self.turn != PLANNER)
             last = np.zeros(n, np.float32)
@@ -466,8 +477,8 @@ class FlatTrainer(Trainer):
             for t in range(T):
                 t0 = time.perf_counter()
                 out, state = self.policy.act(obs, state, starts)
-                t1 = time.perf_counter()
                 obs_t = {k: np.array(v) for k, v in obs.items()}
+                t1 = time.perf_counter()
                 obs, rew, term, trunc, infos = self.env.step(out["action"].numpy())
                 t2 = time.perf_counter()
                 ended = term | trunc
