@@ -61,6 +61,24 @@ def test_field_equals_reference_dijkstra():
             assert geo.distance(0, p, goal) == pytest_approx(want)  # A*
 
 
+def test_field_with_a_small_heap_compacts_and_stays_exact():
+    """The field's heap uses lazy deletion; with scratch far smaller than the grid it must
+    compact its stale copies and still give the reference distances."""
+    from plex_ma.envs.sim import kernels as K
+
+    grid, bank, _ = house()
+    nav, off, h, w, ox, oy, cs = bank.grid_args(0)
+    goal = random_navigable_point(grid, np.random.default_rng(5))
+    cap = h * w // 16
+    dist = np.empty(h * w)
+    K.dijkstra_field(nav, off, h, w, ox, oy, cs, float(goal[0]), float(goal[1]), dist, np.empty(cap),
+                     np.empty(cap, np.int32), np.empty(h * w, np.int32))
+    ref = reference_field(grid, goal)
+    reach = np.isfinite(ref)
+    np.testing.assert_allclose(dist[reach], ref[reach], rtol=0, atol=1e-9)
+    assert np.all(dist[~reach] >= 1e29)
+
+
 def pytest_approx(x):
     return pytest.approx(x, rel=0, abs=1e-9)
 
