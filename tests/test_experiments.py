@@ -140,3 +140,69 @@ def test_prop1_is_deterministic_and_independent_of_chunk():
     b = run_prop1(Prop1Config(**cfg, chunk=1000))["per_alpha"][0]["empirical"]
     c = run_prop1(Prop1Config(**{**cfg, "seed": 6}))["per_alpha"][0]["empirical"]
     assert a.shape == (10,) and np.array_equal(a, b) and not np.array_equal(a, c)
+
+
+# ---------------------------------------------------------------- Table 1 / Fig. 4 / Fig. 5
+def _fake_run(out, arm: str, seed: int, success: float, reward: float) -> None:
+    """The files a finished table1 run leaves: evaluation JSONs and the training metrics."""
+    import gzip
+
+    d = out / "runs" / f"{arm}-s{seed}"
+    d.mkdir(parents=True)
+    part = {"success": success, "spl": success / 2, "reward": reward, "distance_to_goal": 5.0,
+            "collisions": 3.0, "episodes": 10}
+    ev = {**part, "close": {**part, "reward": reward - 1, "episodes": 4},
+          "far": {**part, "reward": reward + 1, "episodes": 6}, "per_episode": []}
+    (d / "eval_test_procgen.json").write_text(json.dumps(ev))
+    (d / "eval_test_r2v.json").write_text(json.dumps({**ev, "reward": reward / 2}))
+    with gzip.open(d / "metrics.jsonl.gz", "wt") as f:
+        for step in (0, 500, 1000):
+            f.write(json.dumps({"step": step, "reward": reward * step / 1000, "metrics/success": success,
+                                "metrics/episodes": 0 if step == 0 else 5}) + "\n")
+
+
+def test_table1_report_aggregates_every_seed(tmp_path):
+    for seed, (s, r) in enumerate([(0.2, 1.0), (0.4, 3.0)]):
+        _fake_run(tmp_path, "plex-gru", seed, s, r)
+        _fake_run(tmp_path, "ppo-gru", seed, s / 2, r / 2)
+    _fake_run(tmp_path, "ppo-smt", 0, 0.1, 0.5)  # a missing seed is reported, not invented
+    assert cli_main(["table1", "--out", str(tmp_path), "--report-only", "--budget", "1000",
+                     "--arms", "plex-gru", "ppo-gru", "ppo-smt", "--seeds", "0", "1"]) == 0
+    res = json.loads((tmp_path / "table1.json").read_text())["table"]
+    pg = res["plex-gru"]["test"]["procgen"]
+    assert res["plex-gru"]["seeds"] == [0, 1]
+    assert pg["all"]["success"]["mean"] == pytest.approx(0.3)
+    assert pg["all"]["success"]["std"] == pytest.approx(np.std([0.2, 0.4], ddof=1))
+    assert pg["far"]["reward"]["values"] == [2.0, 4.0]
+    assert res["plex-gru"]["test"]["r2v"]["all"]["reward"]["mean"] == pytest.approx(1.0)
+    assert res["ppo-smt"]["seeds"] == [0]
+    assert res["ppo-smt"]["test"]["procgen"]["all"]["reward"]["values"] == [0.5]
+    md = (tmp_path / "table1.md").read_text()
+    assert "| PLEX GRU | 2 | 2.000 ± 1.414 | 0.300 ± 0.141 |" in md
+    for png in ("fig4.png", "fig5b.png"):
+        assert (tmp_path / png).stat().st_size > 1000
+
+
+def test_table1_trains_and_evaluates_one_smoke_run(tmp_path):
+    """The real path: the train CLI, then the evaluate CLI, then the report."""
+    out, runs = tmp_path / "out", tmp_path / "runs"
+    assert cli_main(["table1", "--out", str(out), "--runs-dir", str(runs), "--preset", "smoke", "--budget", "256",
+                     "--arms", "ppo-gru", "--seeds", "0", "--eval-episodes", "2", "--r2v-episodes", "0"]) == 0
+    keep = out / "runs" / "ppo-gru-s0"
+    ev = json.loads((keep / "eval_test_procgen.json").read_text())
+    assert ev["episodes"] == 2 and ev["method"] == "ppo-gru"
+    assert (keep / "metrics.jsonl.gz").is_file() and (runs / "ppo-gru-s0" / "latest.pt").is_file()
+    table = json.loads((out / "table1.json").read_text())["table"]
+    assert table["ppo-gru"]["seeds"] == [0]
+    # Run again: the finished run is skipped (its evaluation is not redone).
+    mtime = (keep / "eval_test_procgen.json").stat().st_mtime_ns
+    assert cli_main(["table1", "--out", str(out), "--runs-dir", str(runs), "--preset", "smoke", "--budget", "256",
+                     "--arms", "ppo-gru", "--seeds", "0", "--eval-episodes", "2", "--r2v-episodes", "0"]) == 0
+    assert (keep / "eval_test_procgen.json").stat().st_mtime_ns == mtime
+
+
+def test_table1_rejects_bad_options(tmp_path):
+    with pytest.raises(SystemExit):
+        cli_main(["table1", "--out", str(tmp_path), "--budget", "0"])
+    with pytest.raises(SystemExit):
+        cli_main(["table1", "--out", str(tmp_path), "--arms", "ppo-lstm"])

@@ -223,7 +223,8 @@ def plot_curves(out: Path, args, arms: list[str], path: Path, title: str) -> Non
         ax.set_xlabel("environment steps")
         ax.set_ylabel(f"training {key} (last 100 episodes)")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=8)
     fig.suptitle(title)
     save_figure(fig, path)
     plt.close(fig)
@@ -246,7 +247,8 @@ def plot_fig5b(table: dict, path: Path) -> None:
         ax.set_xticks([0, 1], ["close (< 5.76 m)", "far"])
         ax.set_ylabel(f"test {m}")
         ax.grid(alpha=0.3, axis="y")
-    axes[0].legend(fontsize=8)
+    if axes[0].get_legend_handles_labels()[0]:
+        axes[0].legend(fontsize=8)
     fig.suptitle("Fig. 5b: close vs. far goals (procgen test; bars: mean ± std, dots: seeds)")
     save_figure(fig, path)
     plt.close(fig)
