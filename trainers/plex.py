@@ -400,7 +400,6 @@ class PlexTrainer(Trainer):
                 self.turn_d0[starts] = self.ex_obs["subgoal"][starts, 0]
                 out, state = self.executor.act(self.ex_obs, state, starts)
                 action = out["action"].numpy()
-                t2 = time.perf_counter()
                 obs_t = {k: np.array(v) for k, v in self.ex_obs.items()}
                 t2 = time.perf_counter()
                 res = self.env.step(action=action, eli=out["eli"].numpy())
