@@ -394,6 +394,25 @@ def _block(ox, oy, cs, x, y):
 
 
 @njit(cache=True, inline="always")
+def _edge(nav, off, h, w, cs, r, c, dr, dc):
+    """Length of the grid step from cell (r, c) by (dr, dc): ``cs`` straight, ``cs*sqrt(2)``
+    diagonal, or 0.0 when the step is not allowed (off the grid, into a blocked cell, the
+    cell itself, or a diagonal that cuts a blocked corner). The one graph every search
+    here runs on."""
+    if dr == 0 and dc == 0:
+        return 0.0
+    rr = r + dr
+    cc = c + dc
+    if rr < 0 or rr >= h or cc < 0 or cc >= w or nav[off + rr * w + cc] == 0:
+        return 0.0
+    if dr != 0 and dc != 0:
+        if nav[off + r * w + cc] == 0 or nav[off + rr * w + c] == 0:
+            return 0.0
+        return cs * math.sqrt(2.0)
+    return cs
+
+
+@njit(cache=True, inline="always")
 def _lazy_push(hk, hv, size, key, v):
     """Push onto a binary heap without a position index (lazy deletion: a cell may sit in
     the heap several times; the stale copies are skipped when popped)."""
@@ -463,7 +482,6 @@ def dijkstra_field(nav, off, h, w, ox, oy, cs, gx, gy, dist, hk, hv, hpos):
             v = r * w + c
             dist[v] = d
             size = _lazy_push(hk, hv, size, d, v)
-    diag = cs * math.sqrt(2.0)
     while size > 0:
         d, v, size = _lazy_pop(hk, hv, size)
         if hpos[v] != 0 or d > dist[v]:
@@ -473,21 +491,11 @@ def dijkstra_field(nav, off, h, w, ox, oy, cs, gx, gy, dist, hk, hv, hpos):
         c = v % w
         for dr in range(-1, 2):
             for dc in range(-1, 2):
-                if dr == 0 and dc == 0:
+                step = _edge(nav, off, h, w, cs, r, c, dr, dc)
+                if step == 0.0:
                     continue
-                rr = r + dr
-                cc = c + dc
-                if rr < 0 or rr >= h or cc < 0 or cc >= w:
-                    continue
-                if nav[off + rr * w + cc] == 0:
-                    continue
-                if dr != 0 and dc != 0:
-                    if nav[off + r * w + cc] == 0 or nav[off + rr * w + c] == 0:
-                        continue
-                    nd = d + diag
-                else:
-                    nd = d + cs
-                u = rr * w + cc
+                nd = d + step
+                u = (r + dr) * w + c + dc
                 if nd < dist[u]:
                     dist[u] = nd
                     if size == cap:  # full of stale copies: keep one live entry per open cell
@@ -588,26 +596,17 @@ def _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax
     """Relax the 8 neighbours of the closed cell ``v`` (no corner cutting); keys are
     g + heuristic towards (ax, ay). ``stamp`` marks which entries of ``g``/``hpos`` belong
     to the search ``cur``, so the scratch never needs clearing. Returns the heap size."""
-    diag = cs * math.sqrt(2.0)
     d = g[v]
     r = v // w
     c = v % w
     for dr in range(-1, 2):
         for dc in range(-1, 2):
-            if dr == 0 and dc == 0:
+            step = _edge(nav, off, h, w, cs, r, c, dr, dc)
+            if step == 0.0:
                 continue
+            nd = d + step
             rr = r + dr
             cc = c + dc
-            if rr < 0 or rr >= h or cc < 0 or cc >= w:
-                continue
-            if nav[off + rr * w + cc] == 0:
-                continue
-            if dr != 0 and dc != 0:
-                if nav[off + r * w + cc] == 0 or nav[off + rr * w + c] == 0:
-                    continue
-                nd = d + diag
-            else:
-                nd = d + cs
             u = rr * w + cc
             if stamp[u] != cur:
                 stamp[u] = cur
