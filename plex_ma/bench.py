@@ -19,7 +19,10 @@ stops with a small probability, so episodes are long):
   world per call (planner or executor), i.e. ``num_envs * calls / s``;
 * ``vector_executor_steps_per_second``: only the executor actions of those, i.e. the
   simulator steps the vector env delivers;
-* ``sim_steps_per_second``: ``bench_sim`` at the same ``--num-envs`` and ``--resolution``;
+* ``sim_steps_per_second``: the raw simulator as ``sim`` drives it, at the same
+  ``--num-envs`` and ``--resolution``, timed in ``--rounds`` rounds that alternate with the
+  vector env's (after ``--warmup`` untimed calls of each), so that a drift in the shared
+  machine's speed falls on both;
 * ``ratio``: vector executor steps / raw simulator steps, the env's overhead over the
   simulator (a planner action steps no simulator, so counting it would flatter the env;
   ``ratio_all_actions`` counts it anyway). The goal is ``ratio >= 0.7`` at 64 worlds, 128 px.
@@ -50,38 +53,55 @@ def machine() -> dict:
             "python": platform.python_version()}
 
 
+class _RawSim:
+    """The raw batched simulator driven as ``bench sim`` drives it: random movement actions
+    (no STOP), an episode reset (sampling with its Dijkstra field) after 500 steps."""
+
+    def __init__(self, num_envs: int, resolution: int, seed: int, scenes: str, num_scenes: int | None):
+        from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
+        from plex_ma.envs.sim.episodes import sample_episode
+
+        self.bank = scene_bank(scenes, "train", num_scenes)
+        self.sim = BatchedSim(self.bank, num_envs, resolution=resolution, seed=seed)
+        self.rng = np.random.default_rng(seed)
+        self.geo = Geodesics(self.bank)
+        self.sample = sample_episode
+        self.n = num_envs
+        for i in range(num_envs):
+            self._reset(i)
+        self.sim.step(self.rng.integers(1, 4, num_envs))  # compile / warm up
+        self.t_steps = np.zeros(num_envs, np.int64)
+        self.resets = 0
+
+    def _reset(self, i: int) -> None:
+        self.sim.reset_world(i, *self.sample(self.bank, int(self.rng.integers(len(self.bank))), self.rng, self.geo, i))
+
+    def run(self, calls: int) -> float:
+        """Step all worlds ``calls`` times; returns the seconds it took."""
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            self.sim.step(self.rng.integers(1, 4, self.n))
+            self.t_steps += 1
+            for i in np.flatnonzero(self.t_steps >= 500):
+                self._reset(int(i))
+                self.t_steps[i] = 0
+                self.resets += 1
+        return time.perf_counter() - t0
+
+
 def bench_sim(num_envs: int, resolution: int, steps: int, seed: int, scenes: str = "procgen",
               num_scenes: int | None = None) -> dict:
-    from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
-    from plex_ma.envs.sim.episodes import sample_episode
-
-    bank = scene_bank(scenes, "train", num_scenes)
-    sim = BatchedSim(bank, num_envs, resolution=resolution, seed=seed)
-    rng = np.random.default_rng(seed)
-    geo = Geodesics(bank)
-    for i in range(num_envs):
-        sim.reset_world(i, *sample_episode(bank, int(rng.integers(len(bank))), rng, geo, i))
-    sim.step(rng.integers(1, 4, num_envs))  # compile / warm up
-    t_steps = np.zeros(num_envs, np.int64)
-    resets = 0
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        sim.step(rng.integers(1, 4, num_envs))
-        t_steps += 1
-        for i in np.flatnonzero(t_steps >= 500):
-            sim.reset_world(int(i), *sample_episode(bank, int(rng.integers(len(bank))), rng, geo, int(i)))
-            t_steps[i] = 0
-            resets += 1
-    dt = time.perf_counter() - t0
+    raw = _RawSim(num_envs, resolution, seed, scenes, num_scenes)
+    dt = raw.run(steps)
     return {"benchmark": "sim", "steps_per_second": steps * num_envs / dt, "num_envs": num_envs,
-            "resolution": resolution, "steps": steps * num_envs, "seconds": dt, "resets": resets,
-            "memory_per_world_bytes": sim.memory_per_world(), "scene_bank_bytes": bank.nbytes,
+            "resolution": resolution, "steps": steps * num_envs, "seconds": dt, "resets": raw.resets,
+            "memory_per_world_bytes": raw.sim.memory_per_world(), "scene_bank_bytes": raw.bank.nbytes,
             "machine": machine()}
 
 
 def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str = "procgen",
-              aec_turns: int = 2000, sim_steps: int | None = None, planner_stop_prob: float = 0.01,
-              executor_stop_prob: float = 0.1, num_scenes: int | None = None) -> dict:
+              aec_turns: int = 2000, planner_stop_prob: float = 0.01, executor_stop_prob: float = 0.1,
+              num_scenes: int | None = None, rounds: int = 10, warmup: int = 20) -> dict:
     """AEC turns/s of one ``plex_nav_v0.env``, ``PlexVectorEnv`` steps/s at ``num_envs``
     worlds and the raw simulator's steps/s under the same settings (see the module docstring)."""
     from plex_ma.envs import plex_nav_v0
@@ -130,26 +150,38 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
                     action=np.where(rng.random(n) < executor_stop_prob, 0, rng.integers(1, 4, n)),
                     eli=np.zeros((n, 128), np.float32))
 
-    for _ in range(3):
-        venv.step(**vec_actions())
-    executor_steps = 0
-    ended = 0
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        out = venv.step(**vec_actions())
-        executor_steps += int(np.sum(out.acted == EXECUTOR))
-        ended += len(out.episode_infos)
-    vec_dt = time.perf_counter() - t0
+    counts = {"executor_steps": 0, "ended": 0}
 
-    sim = bench_sim(num_envs, resolution, steps if sim_steps is None else sim_steps, seed, scenes, num_scenes)
+    def run_vec(calls: int) -> float:
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            out = venv.step(**vec_actions())
+            counts["executor_steps"] += int(np.sum(out.acted == EXECUTOR))
+            counts["ended"] += len(out.episode_infos)
+        return time.perf_counter() - t0
+
+    raw = _RawSim(num_envs, resolution, seed, scenes, num_scenes)
+    run_vec(warmup)
+    raw.run(warmup)
+    # Interleave the two in rounds: on a shared machine the speed drifts over seconds, and
+    # timing one after the other would fold that drift into the ratio.
+    counts["executor_steps"] = counts["ended"] = 0
+    vec_dt = sim_dt = 0.0
+    rounds = max(1, min(rounds, steps))
+    for k in range(rounds):
+        calls = steps // rounds + (k < steps % rounds)
+        vec_dt += run_vec(calls)
+        sim_dt += raw.run(calls)
+    executor_steps = counts["executor_steps"]
     vec_sps = steps * n / vec_dt
     vec_ex_sps = executor_steps / vec_dt
+    sim_sps = steps * n / sim_dt
     return {"benchmark": "env", "num_envs": num_envs, "resolution": resolution,
             "aec_turns_per_second": aec_turns / aec_dt, "aec_turns": aec_turns, "aec_episodes": aec_episodes,
             "vector_steps_per_second": vec_sps, "vector_executor_steps_per_second": vec_ex_sps,
             "vector_calls": steps, "vector_executor_fraction": executor_steps / (steps * n),
-            "vector_episodes_ended": ended, "sim_steps_per_second": sim["steps_per_second"],
-            "ratio": vec_ex_sps / sim["steps_per_second"], "ratio_all_actions": vec_sps / sim["steps_per_second"],
+            "vector_episodes_ended": counts["ended"], "sim_steps_per_second": sim_sps, "sim_resets": raw.resets,
+            "ratio": vec_ex_sps / sim_sps, "ratio_all_actions": vec_sps / sim_sps, "rounds": rounds,
             "planner_stop_prob": planner_stop_prob, "executor_stop_prob": executor_stop_prob,
             "machine": machine()}
 
@@ -235,7 +267,10 @@ def main(argv: list[str] | None = None) -> None:
     ps = sub.add_parser("sim", help="raw batched simulator throughput")
     common(ps, 300, "batched steps to time")
     pe = sub.add_parser("env", help="AEC env turns/s, vector env steps/s and their ratio to the raw simulator")
-    common(pe, 100, "vector env calls to time (the raw simulator gets as many)")
+    common(pe, 200, "vector env calls to time (the raw simulator gets as many)")
+    pe.add_argument("--rounds", type=int, default=10, help="alternate the vector env and the raw simulator this "
+                    "many times (both timed in each round)")
+    pe.add_argument("--warmup", type=int, default=20, help="untimed calls of each before timing")
     pe.add_argument("--aec-turns", type=int, default=2000, help="AEC turns to time")
     pe.add_argument("--planner-stop-prob", type=float, default=0.01, help="chance that a planner action is STOP")
     pe.add_argument("--executor-stop-prob", type=float, default=0.1, help="chance that an executor action is STOP")
@@ -280,7 +315,7 @@ def main(argv: list[str] | None = None) -> None:
     else:
         out = bench_env(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, aec_turns=a.aec_turns,
                         planner_stop_prob=a.planner_stop_prob, executor_stop_prob=a.executor_stop_prob,
-                        num_scenes=a.num_scenes)
+                        num_scenes=a.num_scenes, rounds=a.rounds, warmup=a.warmup)
     if a.json:
         print(json.dumps(out))
     else:

@@ -61,22 +61,20 @@ def test_field_equals_reference_dijkstra():
             assert geo.distance(0, p, goal) == pytest_approx(want)  # A*
 
 
-def test_field_with_a_small_heap_compacts_and_stays_exact():
-    """The field's heap uses lazy deletion; with scratch far smaller than the grid it must
-    compact its stale copies and still give the reference distances."""
-    from plex_ma.envs.sim import kernels as K
-
-    grid, bank, _ = house()
-    nav, off, h, w, ox, oy, cs = bank.grid_args(0)
-    goal = random_navigable_point(grid, np.random.default_rng(5))
-    cap = h * w // 16
-    dist = np.empty(h * w)
-    K.dijkstra_field(nav, off, h, w, ox, oy, cs, float(goal[0]), float(goal[1]), dist, np.empty(cap),
-                     np.empty(cap, np.int32), np.empty(h * w, np.int32))
-    ref = reference_field(grid, goal)
-    reach = np.isfinite(ref)
-    np.testing.assert_allclose(dist[reach], ref[reach], rtol=0, atol=1e-9)
-    assert np.all(dist[~reach] >= 1e29)
+def test_field_at_bucket_edges_equals_reference():
+    """The field's bucket queue closes a cell once its distance falls in the current
+    bucket [k cs, (k+1) cs). A goal on a cell centre puts the straight-line distances at
+    exact multiples of cs, right on the bucket edges, where rounding decides the bucket."""
+    grid, bank, geo = house()
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        rc = np.argwhere(grid.nav)[rng.integers(int(grid.nav.sum()))]
+        goal = grid.cell_center(rc)
+        ours = field64(geo, grid, goal)
+        ref = reference_field(grid, goal)
+        reach = np.isfinite(ref)
+        np.testing.assert_allclose(ours[reach], ref[reach], rtol=0, atol=1e-9)
+        assert np.all(ours[~reach] >= 1e29)
 
 
 def pytest_approx(x):
@@ -156,6 +154,38 @@ def test_tracked_distance_equals_reference_while_the_agent_moves(seed):
         got = sim.track_distance(targets, rows if len(rows) else np.arange(3), new_target=new)
         for i in (rows if len(rows) else range(3)):
             assert got[i] == pytest.approx(reference_lookup(grid, refs[i], sim.pos[i]), rel=0, abs=1e-4)
+
+
+def test_tracked_distance_in_a_house_equals_astar_with_the_scene_landmarks():
+    """Sub-goals as the planner sets them (within 4 m, snapped; many behind walls) in
+    procedural houses: the tracked distance, whose heuristic uses the scene's landmark
+    fields, equals an independent A* from every position of a random walk."""
+    from plex_ma.envs.sim import BatchedSim, scene_bank
+    from plex_ma.envs.sim.episodes import NUM_LANDMARKS, sample_episode
+
+    bank = scene_bank("procgen", "train", 4)
+    geo = Geodesics(bank)
+    rng = np.random.default_rng(0)
+    sim = BatchedSim(bank, 4, resolution=8, egomap=False)
+    for i in range(4):
+        sim.reset_world(i, *sample_episode(bank, i, rng, geo))
+    checked = detour = 0
+    for step in range(60):
+        if step % 6 == 0:
+            ang = sim.heading + rng.uniform(-np.pi, np.pi, 4)
+            raw = sim.pos + rng.uniform(0, 4, (4, 1)) * np.stack([np.cos(ang), np.sin(ang)], 1)
+            targets = sim.snap_to_navigable(raw, np.arange(4))
+            got = sim.track_distance(targets, np.arange(4), new_target=True)
+        else:
+            sim.step(rng.integers(1, 4, 4))
+            got = sim.track_distance(targets, np.arange(4), new_target=False)
+        for i in range(4):
+            want = geo.distance(i, sim.pos[i], targets[i])
+            assert got[i] == pytest.approx(want, rel=0, abs=1e-4)
+            checked += 1
+            detour += want > 1.3 * np.hypot(*(sim.pos[i] - targets[i])) + 0.1
+    assert bank.landmarks_done.all() and bank.landmarks.shape[1] == NUM_LANDMARKS
+    assert checked == 240 and detour >= 10  # walls in the way, where the landmarks matter
 
 
 def test_tracked_distance_to_an_unreachable_target_is_inf():

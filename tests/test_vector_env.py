@@ -166,7 +166,7 @@ def test_bench_env_runs(capsys):
 
     from plex_ma.bench import main
 
-    main(["env", "--num-envs", "2", "--resolution", "32", "--num-scenes", "4", "--steps", "3", "--aec-turns", "30",
+    main(["env", "--num-envs", "2", "--resolution", "32", "--num-scenes", "4", "--steps", "3", "--aec-turns", "30", "--warmup", "2",
           "--json"])
     out = json.loads(capsys.readouterr().out)
     for k in ("aec_turns_per_second", "vector_steps_per_second", "vector_executor_steps_per_second",

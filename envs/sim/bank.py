@@ -82,6 +82,10 @@ class SceneBank:
         self.room_wall_rgb = np.concatenate(walls).reshape(-1, 3) if walls else np.zeros((0, 3))
         self.room_floor_rgb = np.concatenate(floors).reshape(-1, 3) if floors else np.zeros((0, 3))
         self.mat_rgb = MATERIAL_RGB.copy()
+        # Landmark fields for the geodesic searches' heuristic, filled scene by scene on
+        # first use (see episodes.Geodesics.landmarks): (cells, landmarks) float32.
+        self.landmarks: np.ndarray | None = None
+        self.landmarks_done = np.zeros(len(grids), np.bool_)
 
     def __len__(self) -> int:
         return len(self.grids)

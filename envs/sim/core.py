@@ -31,7 +31,7 @@ import numpy as np
 
 from . import kernels as K
 from .bank import SceneBank
-from .episodes import Episode, Geodesics
+from .episodes import NUM_LANDMARKS, Episode, Geodesics
 from .scene import AGENT_HEIGHT, CEILING_HEIGHT
 
 STOP, MOVE_FORWARD, TURN_LEFT, TURN_RIGHT = 0, 1, 2, 3
@@ -200,8 +200,9 @@ class BatchedSim:
         the agent moves (a sub-goal); ``new_target`` starts tracking ``targets[rows]`` from
         the agents' current positions. Same values as :meth:`geodesic` (A*; up to float32
         rounding of the goal field, < 1e-4 m), but each query resumes one search per target
-        (a resumable reverse A*, with the episode's goal field as a landmark) instead of a
-        fresh A*. The worlds must have been reset (their goal fields are used).
+        (a resumable reverse A*, with the episode's goal field and the scene's landmark
+        fields as ALT landmarks) instead of a fresh A*. The worlds must have been reset
+        (their goal fields are used).
         Returns (N,) with entries for ``rows`` filled (``inf`` if unreachable)."""
         b = self.bank
         rows = np.asarray(rows, np.int64)
@@ -211,14 +212,15 @@ class BatchedSim:
                                hk=np.empty((n, cells)), hv=np.empty((n, cells), np.int32),
                                hpos=np.empty((n, cells), np.int32), cur=np.zeros(n, np.int32),
                                size=np.zeros(n, np.int64), anchors=np.zeros((n, 2)), targets=np.zeros((n, 2)),
-                               fa=np.zeros(n))
+                               fa=np.zeros(n), la=np.zeros((n, NUM_LANDMARKS)))
         t = self._track
         if new_target:
             t["targets"][rows] = np.asarray(targets, np.float64).reshape(-1, 2)[rows]
+        landmarks = self.geo.landmarks(self.scene_idx[rows])
         out = np.full(self.n, np.inf)
         K.track_batch(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos, t["targets"],
                       t["anchors"], rows, np.full(len(rows), bool(new_target)), t["g"], t["stamp"], t["cur"], t["hk"],
-                      t["hv"], t["hpos"], t["size"], self.fields, t["fa"], out)
+                      t["hv"], t["hpos"], t["size"], self.fields, t["fa"], landmarks, t["la"], out)
         out[out >= K.INF] = np.inf
         return out
 

@@ -30,6 +30,7 @@ from .bank import SceneBank
 MIN_GEODESIC = 1.0
 MAX_GEODESIC = 30.0
 RATIO_THRESHOLD = 1.1
+NUM_LANDMARKS = 8  # landmark fields per scene for the sub-goal searches' heuristic
 FILE_VERSION = 1
 
 
@@ -72,17 +73,49 @@ class Geodesics:
         self.g = np.empty(n, np.float64)
         self.stamp = np.zeros(n, np.int64)
         self._stamp = 0
+        self.ring = np.empty((3, n), np.int32)
+        self.label = np.empty(n, np.int64)
 
     def field(self, s: int, goal: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Distance field to ``goal`` over scene ``s``: (h*w,) float32, INF where unreachable."""
         nav, off, h, w, ox, oy, cs = self.bank.grid_args(s)
         dist = np.empty(h * w, np.float64)
-        K.dijkstra_field(nav, off, h, w, ox, oy, cs, float(goal[0]), float(goal[1]), dist, self.hk, self.hv,
-                         self.hpos)
+        K.dijkstra_field(nav, off, h, w, ox, oy, cs, float(goal[0]), float(goal[1]), dist, self.ring, self.label)
         if out is None:
             return dist.astype(np.float32)
         out[: h * w] = dist
         return out
+
+    def landmarks(self, scenes) -> np.ndarray:
+        """The bank's landmark table, (cells, NUM_LANDMARKS) float32, with the fields of
+        ``scenes`` filled: distance fields from points spread over each scene's largest
+        component by farthest-point sampling. They only speed up searches (their bounds
+        make A*'s heuristic tighter; the distances found do not depend on them). Computed
+        once per scene (about 9 fields' time) and kept on the bank for all its users."""
+        b = self.bank
+        if b.landmarks is None:
+            # zeros: the pages of scenes never used are never touched
+            b.landmarks = np.zeros((len(b.nav), NUM_LANDMARKS), np.float32)
+        for s in np.unique(np.asarray(scenes, np.int64)):
+            if b.landmarks_done[s]:
+                continue
+            nav, off, h, w, ox, oy, cs = b.grid_args(int(s))
+            comp = b.comp[off: off + h * w]
+            ok = nav[off: off + h * w] != 0
+            largest = np.bincount(comp[ok]).argmax()
+            cell = int(np.flatnonzero(ok & (comp == largest))[0])
+            dist = np.empty(h * w)
+            nearest = None  # distance of every cell to the landmarks chosen so far
+            for j in range(-1, NUM_LANDMARKS):
+                if j >= 0:  # the reachable cell farthest from all landmarks so far
+                    cell = int(np.argmax(np.where(nearest < K.INF, nearest, -1.0)))
+                K.dijkstra_field(nav, off, h, w, ox, oy, cs, ox + (cell % w + 0.5) * cs, oy + (cell // w + 0.5) * cs,
+                                 dist, self.ring, self.label)
+                if j >= 0:
+                    b.landmarks[off: off + h * w, j] = dist
+                nearest = dist.copy() if j <= 0 else np.minimum(nearest, dist)
+            b.landmarks_done[s] = True
+        return b.landmarks
 
     def lookup(self, s: int, field: np.ndarray, p: np.ndarray) -> float:
         """Geodesic distance of point ``p`` in a field; ``math.inf`` if unreachable."""

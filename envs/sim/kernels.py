@@ -412,63 +412,26 @@ def _edge(nav, off, h, w, cs, r, c, dr, dc):
     return cs
 
 
-@njit(cache=True, inline="always")
-def _lazy_push(hk, hv, size, key, v):
-    """Push onto a binary heap without a position index (lazy deletion: a cell may sit in
-    the heap several times; the stale copies are skipped when popped)."""
-    i = size
-    while i > 0:
-        p = (i - 1) >> 1
-        if hk[p] <= key:
-            break
-        hk[i] = hk[p]
-        hv[i] = hv[p]
-        i = p
-    hk[i] = key
-    hv[i] = v
-    return size + 1
-
-
-@njit(cache=True, inline="always")
-def _lazy_pop(hk, hv, size):
-    key = hk[0]
-    v = hv[0]
-    size -= 1
-    if size > 0:
-        lk = hk[size]
-        lv = hv[size]
-        i = 0
-        while True:
-            l = 2 * i + 1
-            if l >= size:
-                break
-            m = l
-            if l + 1 < size and hk[l + 1] < hk[l]:
-                m = l + 1
-            if lk <= hk[m]:
-                break
-            hk[i] = hk[m]
-            hv[i] = hv[m]
-            i = m
-        hk[i] = lk
-        hv[i] = lv
-    return key, v, size
-
-
 @njit(cache=True)
-def dijkstra_field(nav, off, h, w, ox, oy, cs, gx, gy, dist, hk, hv, hpos):
+def dijkstra_field(nav, off, h, w, ox, oy, cs, gx, gy, dist, ring, label):
     """Fill ``dist[:h*w]`` with geodesic distances to the point (gx, gy); INF if unreachable.
 
-    ``hk``, ``hv``, ``hpos`` are scratch arrays of at least ``h*w`` entries (``hpos`` marks
-    closed cells). The heap uses lazy deletion, which is 10-30% faster here than
-    decrease-key; when duplicates fill it, it is compacted to its live entries.
+    Dijkstra with a bucket queue (Dial's algorithm): bucket k holds the open cells whose
+    tentative distance lies in [k cs, (k+1) cs). Every grid step is at least ``cs`` long, so
+    no cell of bucket k can shorten another one's distance: all of them are final and are
+    closed in any order, without a heap. Steps are at most sqrt(2) cs, so only buckets k,
+    k+1 and k+2 are ever open and three rows of ``ring`` ((3, >= h*w) int32) hold them.
+    ``label[v]`` ((>= h*w) int64) is the bucket that lists ``v`` (-1: none yet, -2:
+    closed); a cell moved to a nearer bucket leaves a stale copy behind, skipped later.
+    The distances are the same floats as a heap-ordered Dijkstra's: each cell ends as the
+    minimum over its neighbours of their final distance plus the step.
     """
     n = h * w
-    cap = hk.shape[0]
+    inv = 1.0 / cs
+    fill = np.zeros(3, np.int64)
     for v in range(n):
         dist[v] = INF
-        hpos[v] = 0
-    size = 0
+        label[v] = -1
     r0, c0 = _block(ox, oy, cs, gx, gy)
     for dr in range(2):
         for dc in range(2):
@@ -478,38 +441,42 @@ def dijkstra_field(nav, off, h, w, ox, oy, cs, gx, gy, dist, hk, hv, hpos):
                 continue
             cx = ox + (c + 0.5) * cs
             cy = oy + (r + 0.5) * cs
-            d = math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2)
             v = r * w + c
-            dist[v] = d
-            size = _lazy_push(hk, hv, size, d, v)
-    while size > 0:
-        d, v, size = _lazy_pop(hk, hv, size)
-        if hpos[v] != 0 or d > dist[v]:
-            continue  # closed already, or a stale copy
-        hpos[v] = 1
-        r = v // w
-        c = v % w
-        for dr in range(-1, 2):
-            for dc in range(-1, 2):
-                step = _edge(nav, off, h, w, cs, r, c, dr, dc)
-                if step == 0.0:
-                    continue
-                nd = d + step
-                u = (r + dr) * w + c + dc
-                if nd < dist[u]:
-                    dist[u] = nd
-                    if size == cap:  # full of stale copies: keep one live entry per open cell
-                        k = 0
-                        for i in range(size):
-                            if hpos[hv[i]] == 0 and hk[i] == dist[hv[i]]:
-                                hk[k] = hk[i]
-                                hv[k] = hv[i]
-                                k += 1
-                        size = 0
-                        for i in range(k):
-                            size = _lazy_push(hk, hv, size, hk[i], hv[i])
-                    size = _lazy_push(hk, hv, size, nd, u)
-    return size
+            dist[v] = math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2)
+            label[v] = 0  # the seeds lie within 0.71 cs of the point: bucket 0
+            ring[0, fill[0]] = v
+            fill[0] += 1
+    k = 0
+    while fill[0] + fill[1] + fill[2] > 0:
+        slot = k % 3
+        i = 0
+        while i < fill[slot]:
+            v = ring[slot, i]
+            i += 1
+            if label[v] != k:
+                continue  # closed already, or moved to a nearer bucket
+            label[v] = -2
+            d = dist[v]
+            r = v // w
+            c = v % w
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    step = _edge(nav, off, h, w, cs, r, c, dr, dc)
+                    if step == 0.0:
+                        continue
+                    nd = d + step
+                    u = (r + dr) * w + c + dc
+                    if nd < dist[u]:
+                        dist[u] = nd
+                        # k+1 at least: guards against rounding of nd / cs at a bucket edge
+                        b = max(int(nd * inv), k + 1)
+                        if label[u] != b:
+                            label[u] = b
+                            bs = b % 3
+                            ring[bs, fill[bs]] = u
+                            fill[bs] += 1
+        fill[slot] = 0
+        k += 1
 
 
 @njit(cache=True)
@@ -549,29 +516,48 @@ def field_lookup_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, fields, 
 TIE = 1e-12
 
 
+# Slacks of the heuristic's bounds, in cells. A search starts or ends at a point linked
+# to the centres of the 2x2 block of cells around it, up to sqrt(2) cells away. The
+# octile norm is at most 1.0824 times the euclidean one, so from a cell centre the octile
+# distance to the point overshoots the octile distance to the right centre plus the link
+# by at most 0.0824 * sqrt(2) = 0.117 cells; a field's value at the point (its lookup
+# over the block) is within sqrt(2) cells of its value at any centre of the block.
+OCTILE_SLACK = 0.12
+LANDMARK_SLACK = 1.5
+
+
 @njit(cache=True, inline="always")
-def _heuristic(F, v, x, y, ax, ay, fa, slack):
-    """A* heuristic from cell ``v`` (centre x, y) to the point (ax, ay): the larger of the
-    octile distance minus ``slack`` and, when ``fa < INF``, the landmark bound
-    |F[v] - fa| - slack, where F is a distance field and fa its value at (ax, ay) (ALT,
-    Goldberg & Harrelson 2005). The octile distance is the exact cost of an obstacle-free
-    path on the 8-connected grid, so it is consistent and much tighter than the Euclidean
-    one; ``slack`` covers the point-to-cell links at the ends (0.09 cells for the octile
-    term, 1.5 cells for the landmark's), so the bound never exceeds the true distance."""
+def _heuristic(F, v, x, y, ax, ay, fa, LM, la, cs):
+    """A* heuristic from cell ``v`` (centre x, y) to the point (ax, ay): the largest of the
+    octile distance and the landmark bounds |L[v] - L(a)| (ALT, Goldberg & Harrelson
+    2005) of the distance field F (when ``fa`` = F(a) < INF) and of the columns j of
+    ``LM`` (the scene's landmark fields, when ``la[j]`` < INF), each less its slack. The
+    octile distance is the exact cost of an obstacle-free path on the 8-connected grid; a
+    field's values change by at most the step length along any step. Both bounds are
+    therefore consistent, and so is their maximum; the slacks keep them below the true
+    distance at the point."""
     dx = abs(x - ax)
     dy = abs(y - ay)
-    e = (dx + 0.41421356237309515 * dy if dx > dy else dy + 0.41421356237309515 * dx) - slack
+    e = (dx + 0.41421356237309515 * dy if dx > dy else dy + 0.41421356237309515 * dx) - OCTILE_SLACK * cs
+    slack = LANDMARK_SLACK * cs
     if fa < INF:
         fv = F[v]
         if fv < INF:
             l = abs(fv - fa) - slack
             if l > e:
-                return l
+                e = l
+    for j in range(la.shape[0]):
+        if la[j] < INF:
+            lv = LM[v, j]
+            if lv < INF:
+                l = abs(lv - la[j]) - slack
+                if l > e:
+                    e = l
     return e
 
 
 @njit(cache=True, inline="always")
-def _seed(nav, off, h, w, ox, oy, cs, px, py, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, slack):
+def _seed(nav, off, h, w, ox, oy, cs, px, py, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, LM, la):
     """Open the navigable centres of the 2x2 block around (px, py) with g = their distance
     to it, keyed towards (ax, ay); returns the heap size."""
     r0, c0 = _block(ox, oy, cs, px, py)
@@ -587,12 +573,12 @@ def _seed(nav, off, h, w, ox, oy, cs, px, py, g, stamp, cur, hk, hv, hpos, size,
             stamp[v] = cur
             g[v] = math.sqrt((cx - px) ** 2 + (cy - py) ** 2)
             hpos[v] = -1
-            size = _heap_push(hk, hv, hpos, size, g[v] * (1.0 - TIE) + _heuristic(F, v, cx, cy, ax, ay, fa, slack), v)
+            size = _heap_push(hk, hv, hpos, size, g[v] * (1.0 - TIE) + _heuristic(F, v, cx, cy, ax, ay, fa, LM, la, cs), v)
     return size
 
 
 @njit(cache=True, inline="always")
-def _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, slack):
+def _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, LM, la):
     """Relax the 8 neighbours of the closed cell ``v`` (no corner cutting); keys are
     g + heuristic towards (ax, ay). ``stamp`` marks which entries of ``g``/``hpos`` belong
     to the search ``cur``, so the scratch never needs clearing. Returns the heap size."""
@@ -614,7 +600,7 @@ def _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax
                 hpos[u] = -1
             if nd < g[u]:
                 g[u] = nd
-                fu = nd * (1.0 - TIE) + _heuristic(F, u, ox + (cc + 0.5) * cs, oy + (rr + 0.5) * cs, ax, ay, fa, slack)
+                fu = nd * (1.0 - TIE) + _heuristic(F, u, ox + (cc + 0.5) * cs, oy + (rr + 0.5) * cs, ax, ay, fa, LM, la, cs)
                 if hpos[u] == -1:
                     size = _heap_push(hk, hv, hpos, size, fu, u)
                 elif hpos[u] >= 0:
@@ -630,8 +616,11 @@ def astar(nav, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp, hk, h
     ``stamp`` marks which entries of ``g`` and ``hpos`` are valid for this call, so the
     scratch never needs clearing. Returns INF when the points are not connected.
     """
-    # Euclidean heuristic only: fa = INF switches the landmark term off (g stands in for F)
-    size = _seed(nav, off, h, w, ox, oy, cs, sx, sy, g, stamp, cur_stamp, hk, hv, hpos, 0, gx, gy, g, INF, 0.1 * cs)
+    # octile heuristic only: fa = INF and no landmark columns switch the landmark terms off
+    # (g stands in for the field F)
+    LM = np.empty((0, 0), np.float32)
+    la = np.empty(0)
+    size = _seed(nav, off, h, w, ox, oy, cs, sx, sy, g, stamp, cur_stamp, hk, hv, hpos, 0, gx, gy, g, INF, LM, la)
     tr0, tc0 = _block(ox, oy, cs, gx, gy)
     best = INF
     while size > 0:
@@ -646,79 +635,155 @@ def astar(nav, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp, hk, h
             t = g[v] + math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2)
             if t < best:
                 best = t
-        size = _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur_stamp, hk, hv, hpos, size, gx, gy, g, INF, 0.1 * cs)
+        size = _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur_stamp, hk, hv, hpos, size, gx, gy, g, INF, LM, la)
     return best
 
 
 # Distance to a fixed target from a moving agent: a *resumable reverse A** (Silver 2005).
-# The search runs from the target towards the agent's position when the target was set
-# (the anchor; Euclidean heuristic, consistent on this graph). A cell's g is exact once it
-# is closed, whatever the later queries are, so a query from the agent's new position only
-# resumes the search until the cells around that position are settled. An executor turn
-# costs about one A* instead of one per step, and the goal field as a landmark (ALT) keeps
-# that one search narrow when the sub-goal lies towards the goal. State per world lives in
-# ``g``, ``stamp``, ``hk``, ``hv``, ``hpos`` (one row per world); ``hpos == -2`` marks a
-# closed cell.
+# The search runs from the target towards the agent's position (the anchor). A cell's g is
+# exact once it is closed, whatever the later queries are, so a query from the agent's new
+# position re-keys the open cells towards it and resumes the search until the cells
+# around that position are settled. An executor turn costs about one A* instead of one
+# per step.
+# The heuristic (octile distance, the episode's goal field and the scene's landmark fields
+# as ALT landmarks) keeps that one search narrow even when the target lies behind a wall.
+# State per world lives in ``g``, ``stamp``, ``hk``, ``hv``, ``hpos`` (one row per world);
+# ``hpos == -2`` marks a closed cell.
 
 
 @njit(cache=True)
-def track_query(nav, off, h, w, ox, oy, cs, g, stamp, cur, hk, hv, hpos, size, ax, ay, px, py, out, wi, F, fa):
+def landmarks_at(nav, off, h, w, ox, oy, cs, LM, x, y, out):
+    """``out[j]`` = the distance of the point (x, y) in landmark field ``LM[:, j]`` (the
+    scene's rows of the table), as :func:`field_lookup` gives it; INF if unreachable."""
+    for j in range(LM.shape[1]):
+        out[j] = INF
+    r0, c0 = _block(ox, oy, cs, x, y)
+    for dr in range(2):
+        for dc in range(2):
+            r = r0 + dr
+            c = c0 + dc
+            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
+                continue
+            v = r * w + c
+            tail = math.sqrt((ox + (c + 0.5) * cs - x) ** 2 + (oy + (r + 0.5) * cs - y) ** 2)
+            for j in range(LM.shape[1]):
+                d = LM[v, j]
+                if d < INF and d + tail < out[j]:
+                    out[j] = d + tail
+
+
+@njit(cache=True)
+def track_query(nav, off, h, w, ox, oy, cs, g, stamp, cur, hk, hv, hpos, size, ax, ay, px, py, out, wi, F, fa, LM,
+                la):
     """Geodesic distance from (px, py) to the search's target into ``out[wi]`` (INF if not
     connected), resuming the search as far as needed; returns the new heap size."""
-    slack = 1.5 * cs
+    # The navigable cells of the 2x2 block around p, their links to p and heuristics.
     r0, c0 = _block(ox, oy, cs, px, py)
+    cells = np.empty(4, np.int64)
+    tails = np.empty(4)
+    hs = np.empty(4)
+    m = 0
+    for dr in range(2):
+        for dc in range(2):
+            r = r0 + dr
+            c = c0 + dc
+            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
+                continue
+            cx = ox + (c + 0.5) * cs
+            cy = oy + (r + 0.5) * cs
+            cells[m] = r * w + c
+            tails[m] = math.sqrt((cx - px) ** 2 + (cy - py) ** 2)
+            hs[m] = _heuristic(F, r * w + c, cx, cy, ax, ay, fa, LM, la, cs)
+            m += 1
     while True:
         # best over the closed cells around p; a lower bound for the open ones: a cell u
         # not yet closed has g*(u) >= f_top - h(u) (consistent heuristic)
         best = INF
         bound = INF
         f_top = hk[0] if size > 0 else INF
-        for dr in range(2):
-            for dc in range(2):
-                r = r0 + dr
-                c = c0 + dc
-                if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
-                    continue
-                v = r * w + c
-                cx = ox + (c + 0.5) * cs
-                cy = oy + (r + 0.5) * cs
-                tail = math.sqrt((cx - px) ** 2 + (cy - py) ** 2)
-                if stamp[v] == cur and hpos[v] == -2:
-                    t = g[v] + tail
-                    if t < best:
-                        best = t
-                elif size > 0:
-                    t = f_top - _heuristic(F, v, cx, cy, ax, ay, fa, slack) + tail
-                    if t < bound:
-                        bound = t
+        for i in range(m):
+            v = cells[i]
+            if stamp[v] == cur and hpos[v] == -2:
+                t = g[v] + tails[i]
+                if t < best:
+                    best = t
+            elif size > 0:
+                t = f_top - hs[i] + tails[i]
+                if t < bound:
+                    bound = t
         if bound >= best or size == 0:
             out[wi] = best
             return size
         f, v, size = _heap_pop(hk, hv, hpos, size)
-        size = _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, slack)
+        size = _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, LM, la)
+
+
+@njit(cache=True)
+def _retarget(nav, off, h, w, ox, oy, cs, g, hk, hv, hpos, size, ax, ay, F, LM, la):
+    """Re-key the open cells of a search towards a new point (ax, ay) and restore the heap.
+    The closed cells keep their exact distances and the open ones their best distance
+    through them; that is all A* needs, so the search goes on towards the new point with
+    any consistent heuristic. Returns F's value at (ax, ay); fills ``la`` with the
+    landmarks' values there."""
+    fa = field_lookup(nav, off, h, w, ox, oy, cs, F, ax, ay)
+    landmarks_at(nav, off, h, w, ox, oy, cs, LM, ax, ay, la)
+    for i in range(size):
+        v = hv[i]
+        r = v // w
+        c = v % w
+        hk[i] = g[v] * (1.0 - TIE) + _heuristic(F, v, ox + (c + 0.5) * cs, oy + (r + 0.5) * cs, ax, ay, fa, LM, la, cs)
+    for i in range(size // 2 - 1, -1, -1):  # heapify: sift every inner node down
+        j = i
+        while True:
+            l = 2 * j + 1
+            if l >= size:
+                break
+            m = l
+            if l + 1 < size and hk[l + 1] < hk[l]:
+                m = l + 1
+            if hk[j] <= hk[m]:
+                break
+            hk[m], hk[j] = hk[j], hk[m]
+            hv[m], hv[j] = hv[j], hv[m]
+            hpos[hv[j]] = j
+            hpos[hv[m]] = m
+            j = m
+    return fa
 
 
 @njit(cache=True, parallel=True)
 def track_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, anchors, rows, init, g, stamp,
-                cur, hk, hv, hpos, size, fields, fa, out):
+                cur, hk, hv, hpos, size, fields, fa, LM, la, out):
     """For each world ``r`` in ``rows`` (in parallel): if ``init[k]``, start a new search
-    towards ``targets[r]`` anchored at ``pos[r]`` (bumping ``cur[r]``); then the distance
-    from ``pos[r]`` into ``out[r]``. Every per-world array has one row per world;
-    ``fields`` are the worlds' goal fields (the landmark of the heuristic) and ``fa`` their
-    value at each anchor."""
+    from ``targets[r]`` towards ``pos[r]`` (bumping ``cur[r]``); otherwise, if the agent
+    has moved, re-key the search towards its new position; then the distance from
+    ``pos[r]`` into ``out[r]``. Every per-world array has one row per world; ``anchors``
+    holds the point each search is keyed towards, ``fields`` the worlds' goal fields and
+    ``fa`` their value at the anchor, ``LM`` the bank's landmark table (cells x landmarks;
+    the scenes of ``rows`` must be filled) and ``la`` its values at the anchor: the
+    landmarks of the heuristic."""
     for k in prange(rows.shape[0]):
         r = rows[k]
         s = scene_idx[r]
+        off, h, w, ox, oy = g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s]
+        LMs = LM[off: off + h * w]
         if init[k]:
             cur[r] += 1
             anchors[r, 0] = pos[r, 0]
             anchors[r, 1] = pos[r, 1]
-            fa[r] = field_lookup(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, fields[r], pos[r, 0], pos[r, 1])
-            size[r] = _seed(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, targets[r, 0], targets[r, 1], g[r],
-                            stamp[r], cur[r], hk[r], hv[r], hpos[r], 0, pos[r, 0], pos[r, 1], fields[r], fa[r], 1.5 * cs)
-        size[r] = track_query(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, g[r], stamp[r], cur[r], hk[r],
-                              hv[r], hpos[r], size[r], anchors[r, 0], anchors[r, 1], pos[r, 0], pos[r, 1], out, r,
-                              fields[r], fa[r])
+            fa[r] = field_lookup(nav, off, h, w, ox, oy, cs, fields[r], pos[r, 0], pos[r, 1])
+            landmarks_at(nav, off, h, w, ox, oy, cs, LMs, pos[r, 0], pos[r, 1], la[r])
+            size[r] = _seed(nav, off, h, w, ox, oy, cs, targets[r, 0], targets[r, 1], g[r], stamp[r], cur[r], hk[r],
+                            hv[r], hpos[r], 0, pos[r, 0], pos[r, 1], fields[r], fa[r], LMs, la[r])
+        elif pos[r, 0] != anchors[r, 0] or pos[r, 1] != anchors[r, 1]:
+            # Keyed towards the old position, the search would grow around the line from
+            # the target to it until it happened to cover the new one.
+            anchors[r, 0] = pos[r, 0]
+            anchors[r, 1] = pos[r, 1]
+            fa[r] = _retarget(nav, off, h, w, ox, oy, cs, g[r], hk[r], hv[r], hpos[r], size[r], pos[r, 0], pos[r, 1],
+                              fields[r], LMs, la[r])
+        size[r] = track_query(nav, off, h, w, ox, oy, cs, g[r], stamp[r], cur[r], hk[r], hv[r], hpos[r], size[r],
+                              anchors[r, 0], anchors[r, 1], pos[r, 0], pos[r, 1], out, r, fields[r], fa[r], LMs, la[r])
 
 
 @njit(cache=True)
