@@ -224,3 +224,21 @@ def test_snapped_subgoal_is_the_nearest_reachable_cell_centre(x, y):
     best = np.min(np.hypot(centres[:, 0] - x, centres[:, 1] - y))
     assert math.hypot(got[0] - x, got[1] - y) == pytest.approx(best, abs=1e-9)
     assert got[0] < 3.0  # still in the left room
+
+
+def test_move_mask_allows_exactly_the_grid_steps_of_the_search_graph():
+    """The search graph as bits: a step is allowed into a navigable cell on the grid, and a
+    diagonal one only when both cells beside it are navigable (no corner cutting)."""
+    from plex_ma.envs.sim.kernels import MOVE_DC, MOVE_DR, move_mask
+
+    rng = np.random.default_rng(3)
+    nav = rng.random((7, 9)) < 0.7
+    m = move_mask(nav)
+    H, W = nav.shape
+    for r in range(H):
+        for c in range(W):
+            for j, (dr, dc) in enumerate(zip(MOVE_DR, MOVE_DC)):
+                rr, cc = r + dr, c + dc
+                want = (nav[r, c] and 0 <= rr < H and 0 <= cc < W and nav[rr, cc]
+                        and (dr == 0 or dc == 0 or (nav[r, cc] and nav[rr, c])))
+                assert bool(m[r, c] >> j & 1) == want, (r, c, dr, dc)

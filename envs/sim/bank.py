@@ -6,6 +6,7 @@ import colorsys
 
 import numpy as np
 
+from .kernels import move_mask
 from .scene import MAT_FURNITURE, NUM_FURNITURE_CATEGORIES, SceneGrid
 
 # Material colours (RGB): free, default wall, door, void, then furniture categories.
@@ -67,6 +68,7 @@ class SceneBank:
         room_off = np.concatenate([[0], np.cumsum([g.num_rooms for g in grids])[:-1]]).astype(np.int32)
         self.kind = np.concatenate([(g.kind + ko).ravel() for g, ko in zip(grids, kind_off)]).astype(np.int32)
         self.nav = np.concatenate([g.nav.ravel() for g in grids]).astype(np.uint8)
+        self.moves = np.concatenate([move_mask(g.nav).ravel() for g in grids])  # the search graph
         self.comp = np.concatenate([g.component.ravel() for g in grids]).astype(np.int32)
         self.klo = np.concatenate([g.kind_lo for g in grids]).astype(np.float64)
         self.khi = np.concatenate([g.kind_hi for g in grids]).astype(np.float64)
@@ -95,6 +97,10 @@ class SceneBank:
         return (self.nav, int(self.off[s]), int(self.h[s]), int(self.w[s]), float(self.ox[s]),
                 float(self.oy[s]), self.cell_size)
 
+    def search_args(self, s: int) -> tuple:
+        """(nav, moves, off, h, w, ox, oy, cs) for the single-scene search kernels."""
+        return (self.nav, self.moves) + self.grid_args(s)[1:]
+
     @property
     def nbytes(self) -> int:
-        return self.kind.nbytes + self.nav.nbytes + self.comp.nbytes
+        return self.kind.nbytes + self.nav.nbytes + self.moves.nbytes + self.comp.nbytes

@@ -218,7 +218,7 @@ class BatchedSim:
             t["targets"][rows] = np.asarray(targets, np.float64).reshape(-1, 2)[rows]
         landmarks = self.geo.landmarks(self.scene_idx[rows])
         out = np.full(self.n, np.inf)
-        K.track_batch(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos, t["targets"],
+        K.track_batch(b.nav, b.moves, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos, t["targets"],
                       t["anchors"], rows, np.full(len(rows), bool(new_target)), t["g"], t["stamp"], t["cur"], t["hk"],
                       t["hv"], t["hpos"], t["size"], self.fields, t["fa"], landmarks, t["la"], out)
         out[out >= K.INF] = np.inf

@@ -75,12 +75,14 @@ class Geodesics:
         self._stamp = 0
         self.ring = np.empty((3, n), np.int32)
         self.label = np.empty(n, np.int64)
+        self._cells: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def field(self, s: int, goal: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Distance field to ``goal`` over scene ``s``: (h*w,) float32, INF where unreachable."""
-        nav, off, h, w, ox, oy, cs = self.bank.grid_args(s)
+        nav, moves, off, h, w, ox, oy, cs = self.bank.search_args(s)
         dist = np.empty(h * w, np.float64)
-        K.dijkstra_field(nav, off, h, w, ox, oy, cs, float(goal[0]), float(goal[1]), dist, self.ring, self.label)
+        K.dijkstra_field(nav, moves, off, h, w, ox, oy, cs, float(goal[0]), float(goal[1]), dist, self.ring,
+                         self.label)
         if out is None:
             return dist.astype(np.float32)
         out[: h * w] = dist
@@ -99,7 +101,7 @@ class Geodesics:
         for s in np.unique(np.asarray(scenes, np.int64)):
             if b.landmarks_done[s]:
                 continue
-            nav, off, h, w, ox, oy, cs = b.grid_args(int(s))
+            nav, moves, off, h, w, ox, oy, cs = b.search_args(int(s))
             comp = b.comp[off: off + h * w]
             ok = nav[off: off + h * w] != 0
             largest = np.bincount(comp[ok]).argmax()
@@ -109,13 +111,21 @@ class Geodesics:
             for j in range(-1, NUM_LANDMARKS):
                 if j >= 0:  # the reachable cell farthest from all landmarks so far
                     cell = int(np.argmax(np.where(nearest < K.INF, nearest, -1.0)))
-                K.dijkstra_field(nav, off, h, w, ox, oy, cs, ox + (cell % w + 0.5) * cs, oy + (cell // w + 0.5) * cs,
-                                 dist, self.ring, self.label)
+                K.dijkstra_field(nav, moves, off, h, w, ox, oy, cs, ox + (cell % w + 0.5) * cs,
+                                 oy + (cell // w + 0.5) * cs, dist, self.ring, self.label)
                 if j >= 0:
                     b.landmarks[off: off + h * w, j] = dist
                 nearest = dist.copy() if j <= 0 else np.minimum(nearest, dist)
             b.landmarks_done[s] = True
         return b.landmarks
+
+    def navigable_cells(self, s: int) -> tuple[np.ndarray, np.ndarray]:
+        """Scene ``s``'s navigable cells (flat indices) and their centres (kept per scene)."""
+        if s not in self._cells:
+            grid = self.bank.grids[s]
+            cells = np.flatnonzero(grid.nav.ravel())
+            self._cells[s] = cells, grid.cell_center(np.stack(np.divmod(cells, grid.shape[1]), axis=1))
+        return self._cells[s]
 
     def lookup(self, s: int, field: np.ndarray, p: np.ndarray) -> float:
         """Geodesic distance of point ``p`` in a field; ``math.inf`` if unreachable."""
@@ -125,9 +135,9 @@ class Geodesics:
 
     def distance(self, s: int, a: np.ndarray, b: np.ndarray) -> float:
         """Geodesic distance between two points by A*; ``math.inf`` if not connected."""
-        nav, off, h, w, ox, oy, cs = self.bank.grid_args(s)
+        nav, moves, off, h, w, ox, oy, cs = self.bank.search_args(s)
         self._stamp += 1
-        d = K.astar(nav, off, h, w, ox, oy, cs, float(a[0]), float(a[1]), float(b[0]), float(b[1]), self.g,
+        d = K.astar(nav, moves, off, h, w, ox, oy, cs, float(a[0]), float(a[1]), float(b[0]), float(b[1]), self.g,
                     self.stamp, self._stamp, self.hk, self.hv, self.hpos)
         return math.inf if d >= K.INF else float(d)
 
@@ -136,8 +146,7 @@ def sample_episode(bank: SceneBank, s: int, rng: np.random.Generator, geo: Geode
                    max_goals: int = 200) -> tuple[Episode, np.ndarray]:
     """Sample one episode in scene ``s`` by Habitat's rules. Returns it and its goal field."""
     grid = bank.grids[s]
-    nav_cells = np.flatnonzero(grid.nav.ravel())
-    centres = grid.cell_center(np.stack(np.divmod(nav_cells, grid.shape[1]), axis=1))
+    nav_cells, centres = geo.navigable_cells(s)
     for _ in range(max_goals):
         gc = nav_cells[rng.integers(len(nav_cells))]
         goal = _cell_point(grid, gc, rng)

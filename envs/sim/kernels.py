@@ -393,27 +393,31 @@ def _block(ox, oy, cs, x, y):
     return int(math.floor((y - oy) / cs - 0.5)), int(math.floor((x - ox) / cs - 0.5))
 
 
-@njit(cache=True, inline="always")
-def _edge(nav, off, h, w, cs, r, c, dr, dc):
-    """Length of the grid step from cell (r, c) by (dr, dc): ``cs`` straight, ``cs*sqrt(2)``
-    diagonal, or 0.0 when the step is not allowed (off the grid, into a blocked cell, the
-    cell itself, or a diagonal that cuts a blocked corner). The one graph every search
-    here runs on."""
-    if dr == 0 and dc == 0:
-        return 0.0
-    rr = r + dr
-    cc = c + dc
-    if rr < 0 or rr >= h or cc < 0 or cc >= w or nav[off + rr * w + cc] == 0:
-        return 0.0
-    if dr != 0 and dc != 0:
-        if nav[off + r * w + cc] == 0 or nav[off + rr * w + c] == 0:
-            return 0.0
-        return cs * math.sqrt(2.0)
-    return cs
+# The one graph every search here runs on: 8-connected navigable cells, straight steps of
+# one cell, diagonal steps of sqrt(2) cells that may not cut a blocked corner (both cells
+# beside the diagonal must be navigable). ``move_mask`` stores it as one byte per cell:
+# bit j set when the step (MOVE_DR[j], MOVE_DC[j]) is allowed.
+MOVE_DR = np.array([-1, -1, -1, 0, 0, 1, 1, 1], np.int64)
+MOVE_DC = np.array([-1, 0, 1, -1, 1, -1, 0, 1], np.int64)
+
+
+def move_mask(nav: np.ndarray) -> np.ndarray:
+    """(H, W) uint8: the allowed grid steps out of every cell of the navigability grid
+    ``nav`` (bit j: the step (MOVE_DR[j], MOVE_DC[j]); none leave the grid)."""
+    nav = np.asarray(nav, np.bool_)
+    H, W = nav.shape
+    p = np.pad(nav, 1)
+    m = np.zeros((H, W), np.uint8)
+    for j, (dr, dc) in enumerate(zip(MOVE_DR, MOVE_DC)):
+        ok = nav & p[1 + dr: 1 + dr + H, 1 + dc: 1 + dc + W]
+        if dr and dc:
+            ok &= p[1 + dr: 1 + dr + H, 1: 1 + W] & p[1: 1 + H, 1 + dc: 1 + dc + W]
+        m |= ok.astype(np.uint8) << j
+    return m
 
 
 @njit(cache=True)
-def dijkstra_field(nav, off, h, w, ox, oy, cs, gx, gy, dist, ring, label):
+def dijkstra_field(nav, moves, off, h, w, ox, oy, cs, gx, gy, dist, ring, label):
     """Fill ``dist[:h*w]`` with geodesic distances to the point (gx, gy); INF if unreachable.
 
     Dijkstra with a bucket queue (Dial's algorithm): bucket k holds the open cells whose
@@ -428,6 +432,7 @@ def dijkstra_field(nav, off, h, w, ox, oy, cs, gx, gy, dist, ring, label):
     """
     n = h * w
     inv = 1.0 / cs
+    diag = cs * math.sqrt(2.0)
     fill = np.zeros(3, np.int64)
     for v in range(n):
         dist[v] = INF
@@ -457,24 +462,23 @@ def dijkstra_field(nav, off, h, w, ox, oy, cs, gx, gy, dist, ring, label):
                 continue  # closed already, or moved to a nearer bucket
             label[v] = -2
             d = dist[v]
-            r = v // w
-            c = v % w
-            for dr in range(-1, 2):
-                for dc in range(-1, 2):
-                    step = _edge(nav, off, h, w, cs, r, c, dr, dc)
-                    if step == 0.0:
-                        continue
-                    nd = d + step
-                    u = (r + dr) * w + c + dc
-                    if nd < dist[u]:
-                        dist[u] = nd
-                        # k+1 at least: guards against rounding of nd / cs at a bucket edge
-                        b = max(int(nd * inv), k + 1)
-                        if label[u] != b:
-                            label[u] = b
-                            bs = b % 3
-                            ring[bs, fill[bs]] = u
-                            fill[bs] += 1
+            m = moves[off + v]
+            for j in range(8):
+                if (m >> j) & 1 == 0:
+                    continue
+                dr = MOVE_DR[j]
+                dc = MOVE_DC[j]
+                nd = d + (cs if dr == 0 or dc == 0 else diag)
+                u = v + dr * w + dc
+                if nd < dist[u]:
+                    dist[u] = nd
+                    # k+1 at least: guards against rounding of nd / cs at a bucket edge
+                    b = max(int(nd * inv), k + 1)
+                    if label[u] != b:
+                        label[u] = b
+                        bs = b % 3
+                        ring[bs, fill[bs]] = u
+                        fill[bs] += 1
         fill[slot] = 0
         k += 1
 
@@ -578,38 +582,39 @@ def _seed(nav, off, h, w, ox, oy, cs, px, py, g, stamp, cur, hk, hv, hpos, size,
 
 
 @njit(cache=True, inline="always")
-def _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, LM, la):
+def _expand(moves, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, LM, la):
     """Relax the 8 neighbours of the closed cell ``v`` (no corner cutting); keys are
     g + heuristic towards (ax, ay). ``stamp`` marks which entries of ``g``/``hpos`` belong
     to the search ``cur``, so the scratch never needs clearing. Returns the heap size."""
     d = g[v]
     r = v // w
     c = v % w
-    for dr in range(-1, 2):
-        for dc in range(-1, 2):
-            step = _edge(nav, off, h, w, cs, r, c, dr, dc)
-            if step == 0.0:
-                continue
-            nd = d + step
-            rr = r + dr
-            cc = c + dc
-            u = rr * w + cc
-            if stamp[u] != cur:
-                stamp[u] = cur
-                g[u] = INF
-                hpos[u] = -1
-            if nd < g[u]:
-                g[u] = nd
-                fu = nd * (1.0 - TIE) + _heuristic(F, u, ox + (cc + 0.5) * cs, oy + (rr + 0.5) * cs, ax, ay, fa, LM, la, cs)
-                if hpos[u] == -1:
-                    size = _heap_push(hk, hv, hpos, size, fu, u)
-                elif hpos[u] >= 0:
-                    _heap_decrease(hk, hv, hpos, hpos[u], fu)
+    m = moves[off + v]
+    for j in range(8):
+        if (m >> j) & 1 == 0:
+            continue
+        dr = MOVE_DR[j]
+        dc = MOVE_DC[j]
+        nd = d + (cs if dr == 0 or dc == 0 else cs * math.sqrt(2.0))
+        rr = r + dr
+        cc = c + dc
+        u = rr * w + cc
+        if stamp[u] != cur:
+            stamp[u] = cur
+            g[u] = INF
+            hpos[u] = -1
+        if nd < g[u]:
+            g[u] = nd
+            fu = nd * (1.0 - TIE) + _heuristic(F, u, ox + (cc + 0.5) * cs, oy + (rr + 0.5) * cs, ax, ay, fa, LM, la, cs)
+            if hpos[u] == -1:
+                size = _heap_push(hk, hv, hpos, size, fu, u)
+            elif hpos[u] >= 0:
+                _heap_decrease(hk, hv, hpos, hpos[u], fu)
     return size
 
 
 @njit(cache=True)
-def astar(nav, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp, hk, hv, hpos):
+def astar(nav, moves, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp, hk, hv, hpos):
     """Geodesic distance between two points by A* over the same graph as the fields.
 
     ``g``/``stamp``/``hk``/``hv``/``hpos`` are scratch arrays of at least ``h*w`` entries;
@@ -635,7 +640,7 @@ def astar(nav, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp, hk, h
             t = g[v] + math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2)
             if t < best:
                 best = t
-        size = _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur_stamp, hk, hv, hpos, size, gx, gy, g, INF, LM, la)
+        size = _expand(moves, off, h, w, ox, oy, cs, v, g, stamp, cur_stamp, hk, hv, hpos, size, gx, gy, g, INF, LM, la)
     return best
 
 
@@ -673,8 +678,8 @@ def landmarks_at(nav, off, h, w, ox, oy, cs, LM, x, y, out):
 
 
 @njit(cache=True)
-def track_query(nav, off, h, w, ox, oy, cs, g, stamp, cur, hk, hv, hpos, size, ax, ay, px, py, out, wi, F, fa, LM,
-                la):
+def track_query(nav, moves, off, h, w, ox, oy, cs, g, stamp, cur, hk, hv, hpos, size, ax, ay, px, py, out, wi, F,
+                fa, LM, la):
     """Geodesic distance from (px, py) to the search's target into ``out[wi]`` (INF if not
     connected), resuming the search as far as needed; returns the new heap size."""
     # The navigable cells of the 2x2 block around p, their links to p and heuristics.
@@ -715,7 +720,7 @@ def track_query(nav, off, h, w, ox, oy, cs, g, stamp, cur, hk, hv, hpos, size, a
             out[wi] = best
             return size
         f, v, size = _heap_pop(hk, hv, hpos, size)
-        size = _expand(nav, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, LM, la)
+        size = _expand(moves, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, LM, la)
 
 
 @njit(cache=True)
@@ -752,8 +757,8 @@ def _retarget(nav, off, h, w, ox, oy, cs, g, hk, hv, hpos, size, ax, ay, F, LM, 
 
 
 @njit(cache=True, parallel=True)
-def track_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, anchors, rows, init, g, stamp,
-                cur, hk, hv, hpos, size, fields, fa, LM, la, out):
+def track_batch(nav, moves, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, anchors, rows, init, g,
+                stamp, cur, hk, hv, hpos, size, fields, fa, LM, la, out):
     """For each world ``r`` in ``rows`` (in parallel): if ``init[k]``, start a new search
     from ``targets[r]`` towards ``pos[r]`` (bumping ``cur[r]``); otherwise, if the agent
     has moved, re-key the search towards its new position; then the distance from
@@ -782,7 +787,7 @@ def track_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, a
             anchors[r, 1] = pos[r, 1]
             fa[r] = _retarget(nav, off, h, w, ox, oy, cs, g[r], hk[r], hv[r], hpos[r], size[r], pos[r, 0], pos[r, 1],
                               fields[r], LMs, la[r])
-        size[r] = track_query(nav, off, h, w, ox, oy, cs, g[r], stamp[r], cur[r], hk[r], hv[r], hpos[r], size[r],
+        size[r] = track_query(nav, moves, off, h, w, ox, oy, cs, g[r], stamp[r], cur[r], hk[r], hv[r], hpos[r], size[r],
                               anchors[r, 0], anchors[r, 1], pos[r, 0], pos[r, 1], out, r, fields[r], fa[r], LMs, la[r])
 
 
