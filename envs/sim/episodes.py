@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 
 from . import kernels as K
 from .bank import SceneBank
@@ -54,6 +55,7 @@ class Episode:
         return d
 
 
+@njit(cache=True)
 def ratio_keep_probability(ratio: float) -> float:
     """Habitat's acceptance probability for an episode with geodesic/euclidean ``ratio``."""
     if ratio >= RATIO_THRESHOLD:
@@ -158,9 +160,7 @@ def sample_episode(bank: SceneBank, s: int, rng: np.random.Generator, geo: Geode
         # Habitat draws a start uniformly and keeps it with probability
         # ratio_keep_probability(geodesic / euclidean); drawing one start with weights equal
         # to that probability gives the same distribution without the rejection loop.
-        euclid = np.hypot(*(centres[ok] - goal).T)
-        ratio = d[ok] / np.maximum(euclid, 1e-9)
-        weight = np.where(ratio >= RATIO_THRESHOLD, 1.0, 20.0 * (ratio - 0.98) ** 2)
+        weight = _start_weights(d, centres, float(goal[0]), float(goal[1]), ok)
         if weight.sum() <= 0:
             continue
         cand = nav_cells[ok]
@@ -176,6 +176,19 @@ def sample_episode(bank: SceneBank, s: int, rng: np.random.Generator, geo: Geode
             return ep, field
     raise RuntimeError(f"scene {grid.scene_id!r}: no valid episode found after {max_goals} goals "
                        f"(navigable area {grid.navigable_area():.1f} m^2)")
+
+
+@njit(cache=True)
+def _start_weights(d, centres, gx, gy, ok):
+    """The keep probability of each candidate start (the cells where ``ok``), from its
+    geodesic ``d`` and the euclidean distance of its centre to the goal (gx, gy)."""
+    out = np.empty(int(ok.sum()))
+    k = 0
+    for i in range(d.shape[0]):
+        if ok[i]:
+            out[k] = ratio_keep_probability(d[i] / max(math.hypot(centres[i, 0] - gx, centres[i, 1] - gy), 1e-9))
+            k += 1
+    return out
 
 
 def _cell_point(grid, flat: int, rng: np.random.Generator) -> np.ndarray:
