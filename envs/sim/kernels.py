@@ -577,7 +577,8 @@ def _seed(nav, off, h, w, ox, oy, cs, px, py, g, stamp, cur, hk, hv, hpos, size,
             stamp[v] = cur
             g[v] = math.sqrt((cx - px) ** 2 + (cy - py) ** 2)
             hpos[v] = -1
-            size = _heap_push(hk, hv, hpos, size, g[v] * (1.0 - TIE) + _heuristic(F, v, cx, cy, ax, ay, fa, LM, la, cs), v)
+            key = g[v] * (1.0 - TIE) + _heuristic(F, v, cx, cy, ax, ay, fa, LM, la, cs)
+            size = _heap_push(hk, hv, hpos, size, key, v)
     return size
 
 
