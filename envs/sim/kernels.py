@@ -369,22 +369,27 @@ def _heap_pop(hk, hv, hpos, size):
         hk[0] = hk[size]
         hv[0] = hv[size]
         hpos[hv[0]] = 0
-        i = 0
-        while True:
-            l = 2 * i + 1
-            if l >= size:
-                break
-            m = l
-            if l + 1 < size and hk[l + 1] < hk[l]:
-                m = l + 1
-            if hk[i] <= hk[m]:
-                break
-            hk[m], hk[i] = hk[i], hk[m]
-            hv[m], hv[i] = hv[i], hv[m]
-            hpos[hv[i]] = i
-            hpos[hv[m]] = m
-            i = m
+        _sift_down(hk, hv, hpos, size, 0)
     return key, v, size
+
+
+@njit(cache=True, inline="always")
+def _sift_down(hk, hv, hpos, size, i):
+    """Move the entry at heap position ``i`` down until both its children are larger."""
+    while True:
+        l = 2 * i + 1
+        if l >= size:
+            break
+        m = l
+        if l + 1 < size and hk[l + 1] < hk[l]:
+            m = l + 1
+        if hk[i] <= hk[m]:
+            break
+        hk[m], hk[i] = hk[i], hk[m]
+        hv[m], hv[i] = hv[i], hv[m]
+        hpos[hv[i]] = i
+        hpos[hv[m]] = m
+        i = m
 
 
 @njit(cache=True)
@@ -739,21 +744,7 @@ def _retarget(nav, off, h, w, ox, oy, cs, g, hk, hv, hpos, size, ax, ay, F, LM, 
         c = v % w
         hk[i] = g[v] * (1.0 - TIE) + _heuristic(F, v, ox + (c + 0.5) * cs, oy + (r + 0.5) * cs, ax, ay, fa, LM, la, cs)
     for i in range(size // 2 - 1, -1, -1):  # heapify: sift every inner node down
-        j = i
-        while True:
-            l = 2 * j + 1
-            if l >= size:
-                break
-            m = l
-            if l + 1 < size and hk[l + 1] < hk[l]:
-                m = l + 1
-            if hk[j] <= hk[m]:
-                break
-            hk[m], hk[j] = hk[j], hk[m]
-            hv[m], hv[j] = hv[j], hv[m]
-            hpos[hv[j]] = j
-            hpos[hv[m]] = m
-            j = m
+        _sift_down(hk, hv, hpos, size, i)
     return fa
 
 
