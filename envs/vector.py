@@ -8,7 +8,8 @@ agent. Neither holds any rule of its own; the AEC env ``plex_nav_v0`` is the sam
 with one world, which a test checks step for step.
 
 Returned image arrays are views into the simulator's buffers: copy them if you keep them
-past the next ``step``.
+past the next ``step``, and do not write into them (a world whose agent did not move keeps
+its image from one step to the next).
 """
 
 from __future__ import annotations

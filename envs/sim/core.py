@@ -148,19 +148,27 @@ class BatchedSim:
         active = self._all if active is None else np.asarray(active, np.bool_)
         acts = np.where(active, actions, STOP)
         old = self.pos.copy()
+        old_heading = self.heading.copy()
         b = self.bank
         K.move(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos, self.heading, acts,
                self.forward_step, self.turn_angle, self.collided)
         self.collided &= active
         self.path_length += np.hypot(*(self.pos - old).T)
-        self._sense(active)
+        # The image is a function of the pose alone: a world that did not move (STOP, a
+        # move blocked at once) keeps its image, and only its GPS+compass reading and ego
+        # map are refreshed.
+        moved = active & (np.any(self.pos != old, axis=1) | (self.heading != old_heading))
+        self._sense(active, moved)
         return self.collided
 
-    def _sense(self, active: np.ndarray) -> None:
+    def _sense(self, active: np.ndarray, render: np.ndarray | None = None) -> None:
+        """Read the sensors of the ``active`` worlds; images are rendered where ``render``
+        (default: ``active``) is set and kept from the last step elsewhere."""
         b = self.bank
         K.render(b.kind, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, b.klo, b.khi, b.kmat, b.kroom,
                  b.room_wall_rgb, b.room_floor_rgb, b.mat_rgb, self.scene_idx, self.pos, self.heading,
-                 self.camera_height, CEILING_HEIGHT, self.hfov, self.max_depth, self.rgb, self.depth, active)
+                 self.camera_height, CEILING_HEIGHT, self.hfov, self.max_depth, self.rgb, self.depth,
+                 active if render is None else render)
         sp, sh = self.pose_noise
         est = np.concatenate([self.pos, self.heading[:, None]], axis=1)
         if sp > 0 or sh > 0:
