@@ -22,7 +22,10 @@ stops with a small probability, so episodes are long):
 * ``sim_steps_per_second``: the raw simulator as ``sim`` drives it, at the same
   ``--num-envs`` and ``--resolution``, timed in ``--rounds`` rounds that alternate with the
   vector env's (after ``--warmup`` untimed calls of each), so that a drift in the shared
-  machine's speed falls on both;
+  machine's speed falls on both. Its worlds start in the vector env's first episodes
+  (rendering costs depend on the house and the pose) and reset at their long-run rate, one
+  per world every 500 steps, with episode clocks spread over [0, 500) at the start (the
+  env's resets are timed too);
 * ``ratio``: vector executor steps / raw simulator steps, the env's overhead over the
   simulator (a planner action steps no simulator, so counting it would flatter the env;
   ``ratio_all_actions`` counts it anyway). The goal is ``ratio >= 0.7`` at 64 worlds, 128 px.
@@ -55,9 +58,15 @@ def machine() -> dict:
 
 class _RawSim:
     """The raw batched simulator driven as ``bench sim`` drives it: random movement actions
-    (no STOP), an episode reset (sampling with its Dijkstra field) after 500 steps."""
+    (no STOP), an episode reset (sampling with its Dijkstra field) after 500 steps.
 
-    def __init__(self, num_envs: int, resolution: int, seed: int, scenes: str, num_scenes: int | None):
+    ``episodes`` starts the worlds in given episodes (default: sampled ones). With
+    ``steady``, the worlds' episode clocks start spread over [0, 500), as in a simulator
+    that has been running for a while, so that resets come at their long-run rate (one per
+    world every 500 steps) from the first call instead of all at step 500."""
+
+    def __init__(self, num_envs: int, resolution: int, seed: int, scenes: str, num_scenes: int | None,
+                 episodes: list | None = None, steady: bool = False):
         from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
         from plex_ma.envs.sim.episodes import sample_episode
 
@@ -68,9 +77,12 @@ class _RawSim:
         self.sample = sample_episode
         self.n = num_envs
         for i in range(num_envs):
-            self._reset(i)
+            if episodes is None:
+                self._reset(i)
+            else:
+                self.sim.reset_world(i, episodes[i])
         self.sim.step(self.rng.integers(1, 4, num_envs))  # compile / warm up
-        self.t_steps = np.zeros(num_envs, np.int64)
+        self.t_steps = self.rng.integers(0, 500, num_envs) if steady else np.zeros(num_envs, np.int64)
         self.resets = 0
 
     def _reset(self, i: int) -> None:
@@ -160,7 +172,9 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
             counts["ended"] += len(out.episode_infos)
         return time.perf_counter() - t0
 
-    raw = _RawSim(num_envs, resolution, seed, scenes, num_scenes)
+    # The raw simulator starts in the vector env's first episodes (the same houses and
+    # poses: the cost of rendering depends on them) and resets at its long-run rate.
+    raw = _RawSim(num_envs, resolution, seed, scenes, num_scenes, episodes=list(venv.worlds.sim.episodes), steady=True)
     run_vec(warmup)
     raw.run(warmup)
     # Interleave the two in rounds: on a shared machine the speed drifts over seconds, and
