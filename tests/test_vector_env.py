@@ -170,6 +170,6 @@ def test_bench_env_runs(capsys):
           "--json"])
     out = json.loads(capsys.readouterr().out)
     for k in ("aec_turns_per_second", "vector_steps_per_second", "vector_executor_steps_per_second",
-              "sim_steps_per_second", "ratio", "ratio_all_actions"):
+              "sim_steps_per_second", "ratio", "ratio_all_actions", "ratio_cpu"):
         assert out[k] > 0, k
     assert out["num_envs"] == 2 and out["resolution"] == 32
