@@ -398,6 +398,20 @@ def _block(ox, oy, cs, x, y):
     return int(math.floor((y - oy) / cs - 0.5)), int(math.floor((x - ox) / cs - 0.5))
 
 
+@njit(cache=True, inline="always")
+def _link(nav, off, h, w, ox, oy, cs, r0, c0, k, x, y):
+    """Cell ``k`` (0-3, row by row) of the 2x2 block whose lower-left cell is (r0, c0), as
+    a link of the point (x, y) into the graph: (flat index, centre x, centre y, distance
+    from the centre to the point); index -1 when the cell is off the grid or blocked."""
+    r = r0 + (k >> 1)
+    c = c0 + (k & 1)
+    if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
+        return -1, 0.0, 0.0, 0.0
+    cx = ox + (c + 0.5) * cs
+    cy = oy + (r + 0.5) * cs
+    return r * w + c, cx, cy, math.sqrt((cx - x) ** 2 + (cy - y) ** 2)
+
+
 # The one graph every search here runs on: 8-connected navigable cells, straight steps of
 # one cell, diagonal steps of sqrt(2) cells that may not cut a blocked corner (both cells
 # beside the diagonal must be navigable). ``move_mask`` stores it as one byte per cell:
@@ -443,16 +457,10 @@ def dijkstra_field(nav, moves, off, h, w, ox, oy, cs, gx, gy, dist, ring, label)
         dist[v] = INF
         label[v] = -1
     r0, c0 = _block(ox, oy, cs, gx, gy)
-    for dr in range(2):
-        for dc in range(2):
-            r = r0 + dr
-            c = c0 + dc
-            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
-                continue
-            cx = ox + (c + 0.5) * cs
-            cy = oy + (r + 0.5) * cs
-            v = r * w + c
-            dist[v] = math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2)
+    for q in range(4):
+        v, _, _, tail = _link(nav, off, h, w, ox, oy, cs, r0, c0, q, gx, gy)
+        if v >= 0:
+            dist[v] = tail
             label[v] = 0  # the seeds lie within 0.71 cs of the point: bucket 0
             ring[0, fill[0]] = v
             fill[0] += 1
@@ -493,20 +501,10 @@ def field_lookup(nav, off, h, w, ox, oy, cs, dist, x, y):
     """Geodesic distance of the point (x, y) given a goal's field; INF if unreachable."""
     r0, c0 = _block(ox, oy, cs, x, y)
     best = INF
-    for dr in range(2):
-        for dc in range(2):
-            r = r0 + dr
-            c = c0 + dc
-            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
-                continue
-            d = dist[r * w + c]
-            if d >= INF:
-                continue
-            cx = ox + (c + 0.5) * cs
-            cy = oy + (r + 0.5) * cs
-            t = d + math.sqrt((cx - x) ** 2 + (cy - y) ** 2)
-            if t < best:
-                best = t
+    for k in range(4):
+        v, _, _, tail = _link(nav, off, h, w, ox, oy, cs, r0, c0, k, x, y)
+        if v >= 0 and dist[v] < INF and dist[v] + tail < best:
+            best = dist[v] + tail
     return best
 
 
@@ -570,20 +568,15 @@ def _seed(nav, off, h, w, ox, oy, cs, px, py, g, stamp, cur, hk, hv, hpos, size,
     """Open the navigable centres of the 2x2 block around (px, py) with g = their distance
     to it, keyed towards (ax, ay); returns the heap size."""
     r0, c0 = _block(ox, oy, cs, px, py)
-    for dr in range(2):
-        for dc in range(2):
-            r = r0 + dr
-            c = c0 + dc
-            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
-                continue
-            cx = ox + (c + 0.5) * cs
-            cy = oy + (r + 0.5) * cs
-            v = r * w + c
-            stamp[v] = cur
-            g[v] = math.sqrt((cx - px) ** 2 + (cy - py) ** 2)
-            hpos[v] = -1
-            key = g[v] * (1.0 - TIE) + _heuristic(F, v, cx, cy, ax, ay, fa, LM, la, cs)
-            size = _heap_push(hk, hv, hpos, size, key, v)
+    for k in range(4):
+        v, cx, cy, tail = _link(nav, off, h, w, ox, oy, cs, r0, c0, k, px, py)
+        if v < 0:
+            continue
+        stamp[v] = cur
+        g[v] = tail
+        hpos[v] = -1
+        key = g[v] * (1.0 - TIE) + _heuristic(F, v, cx, cy, ax, ay, fa, LM, la, cs)
+        size = _heap_push(hk, hv, hpos, size, key, v)
     return size
 
 
@@ -669,18 +662,14 @@ def landmarks_at(nav, off, h, w, ox, oy, cs, LM, x, y, out):
     for j in range(LM.shape[1]):
         out[j] = INF
     r0, c0 = _block(ox, oy, cs, x, y)
-    for dr in range(2):
-        for dc in range(2):
-            r = r0 + dr
-            c = c0 + dc
-            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
-                continue
-            v = r * w + c
-            tail = math.sqrt((ox + (c + 0.5) * cs - x) ** 2 + (oy + (r + 0.5) * cs - y) ** 2)
-            for j in range(LM.shape[1]):
-                d = LM[v, j]
-                if d < INF and d + tail < out[j]:
-                    out[j] = d + tail
+    for k in range(4):
+        v, _, _, tail = _link(nav, off, h, w, ox, oy, cs, r0, c0, k, x, y)
+        if v < 0:
+            continue
+        for j in range(LM.shape[1]):
+            d = LM[v, j]
+            if d < INF and d + tail < out[j]:
+                out[j] = d + tail
 
 
 @njit(cache=True)
@@ -694,18 +683,14 @@ def track_query(nav, moves, off, h, w, ox, oy, cs, g, stamp, cur, hk, hv, hpos, 
     tails = np.empty(4)
     hs = np.empty(4)
     m = 0
-    for dr in range(2):
-        for dc in range(2):
-            r = r0 + dr
-            c = c0 + dc
-            if r < 0 or r >= h or c < 0 or c >= w or nav[off + r * w + c] == 0:
-                continue
-            cx = ox + (c + 0.5) * cs
-            cy = oy + (r + 0.5) * cs
-            cells[m] = r * w + c
-            tails[m] = math.sqrt((cx - px) ** 2 + (cy - py) ** 2)
-            hs[m] = _heuristic(F, r * w + c, cx, cy, ax, ay, fa, LM, la, cs)
-            m += 1
+    for k in range(4):
+        v, cx, cy, tail = _link(nav, off, h, w, ox, oy, cs, r0, c0, k, px, py)
+        if v < 0:
+            continue
+        cells[m] = v
+        tails[m] = tail
+        hs[m] = _heuristic(F, v, cx, cy, ax, ay, fa, LM, la, cs)
+        m += 1
     while True:
         # best over the closed cells around p; a lower bound for the open ones: a cell u
         # not yet closed has g*(u) >= f_top - h(u) (consistent heuristic)
