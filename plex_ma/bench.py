@@ -26,7 +26,7 @@ stops with a small probability, so episodes are long):
   (rendering costs depend on the house and the pose) and reset at their long-run rate, one
   per world every 500 steps, with episode clocks spread over [0, 500) at the start (the
   env's resets are timed too). Before timing, the landmark tables of the sub-goal
-  searches are computed for every house, as in a long run (about 1.4 s for the 72
+  searches are computed for every house, as in a long run (about 1.8 s for the 72
   procgen training houses; otherwise a short bench times this one-off cost whenever an
   episode starts in a house not met yet);
 * ``ratio``: vector executor steps / raw simulator steps, the env's overhead over the
@@ -181,7 +181,7 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
     # poses: the cost of rendering depends on them) and resets at its long-run rate.
     raw = _RawSim(num_envs, resolution, seed, scenes, num_scenes, episodes=list(venv.worlds.sim.episodes), steady=True)
     # A long run has met every house: its landmark tables (computed on a house's first
-    # sub-goal search, ~20 ms each) are in place. Without this, a short bench would time
+    # sub-goal search, ~25 ms each) are in place. Without this, a short bench would time
     # that one-off cost whenever an episode starts in a house not seen yet.
     venv.worlds.sim.precompute_landmarks()
     run_vec(warmup)

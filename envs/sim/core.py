@@ -234,7 +234,7 @@ class BatchedSim:
 
     def precompute_landmarks(self, scenes=None) -> None:
         """Compute the landmark fields of ``scenes`` (default: every scene of the bank) now
-        instead of at each scene's first sub-goal search (about 20 ms per procgen house,
+        instead of at each scene's first sub-goal search (about 25 ms per procgen house,
         32 bytes per grid cell; see :meth:`Geodesics.landmarks`)."""
         self.geo.landmarks(np.arange(len(self.bank)) if scenes is None else scenes)
 
