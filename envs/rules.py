@@ -354,13 +354,16 @@ class PlexWorlds(_Worlds):
             executor_turn_end=np.zeros(n, np.bool_), executor_stopped=np.zeros(n, np.bool_),
             executor_reached=np.zeros(n, np.bool_),
             terminated=np.zeros(n, np.bool_), truncated=np.zeros(n, np.bool_))
-        if len(pl):
-            self._planner_step(pl, stop_a, sg, out)
+        new = self._planner_step(pl, stop_a, sg, out) if len(pl) else pl
         if len(ex):
-            self._executor_step(ex, act_a, eli_a, out)
+            self._executor_step(ex, act_a, eli_a, out, new)
+        elif len(new):
+            self._track_subgoals(new, ex)
         return out
 
-    def _planner_step(self, rows, stop, sg, out: PlexStep) -> None:
+    def _planner_step(self, rows, stop, sg, out: PlexStep) -> np.ndarray:
+        """Apply planner actions; returns the worlds that got a new sub-goal (their
+        distance to it is measured along with the executors' moves: :meth:`_track_subgoals`)."""
         cfg = self.cfg
         out.acted[rows] = PLANNER
         self.planner_decisions[rows] += 1
@@ -379,19 +382,26 @@ class PlexWorlds(_Worlds):
             raw = pose[:, :2] + sg[:, :1] * np.stack([np.cos(ang), np.sin(ang)], 1)
             self.subgoal_raw[rows] = raw
             self.subgoal[rows] = self.sim.snap_to_navigable(self.subgoal_raw, rows)[rows]
-            self.subgoal_dist[rows] = self._subgoal_distance(rows, new_subgoal=True)
-            self.subgoal_dist0[rows] = self.subgoal_dist[rows]
             self.turn[rows] = EXECUTOR
             self.turn_steps[rows] = 0
+        return rows
 
-    def _subgoal_distance(self, rows, new_subgoal: bool = False) -> np.ndarray:
-        d = self.sim.track_distance(self.subgoal, rows, new_target=new_subgoal)[rows]
+    def _track_subgoals(self, new, moved) -> None:
+        """Geodesic distance to the sub-goal: a new search in the worlds ``new`` (which also
+        sets their ``subgoal_dist0``), a resumed one in the worlds whose agent ``moved``. One
+        batch for both lets the threads share out the few long new searches and the many
+        short resumed ones."""
+        rows = np.concatenate([new, moved])
+        if not len(rows):
+            return
+        d = self.sim.track_distance(self.subgoal, rows, new_target=np.arange(len(rows)) < len(new))[rows]
         if not np.all(np.isfinite(d)):
             bad = rows[~np.isfinite(d)]
             raise RuntimeError(f"sub-goal unreachable in worlds {bad.tolist()} after snapping; this is a bug")
-        return d
+        self.subgoal_dist[rows] = d
+        self.subgoal_dist0[new] = d[:len(new)]
 
-    def _executor_step(self, rows, action, eli, out: PlexStep) -> None:
+    def _executor_step(self, rows, action, eli, out: PlexStep, new_subgoals) -> None:
         cfg = self.cfg
         sim = self.sim
         out.acted[rows] = EXECUTOR
@@ -406,11 +416,9 @@ class PlexWorlds(_Worlds):
         # The sub-goal is fixed during the turn, so the geodesic distance to it changes only
         # where the agent moved; turns, STOP and blocked moves keep the previous value. The
         # search behind it resumes from where the turn's earlier queries left it.
-        d_sub = d_sub_prev.copy()
         moved = np.any(sim.pos[rows] != pos_prev, axis=1)
-        if moved.any():
-            d_sub[moved] = self._subgoal_distance(rows[moved])
-        self.subgoal_dist[rows] = d_sub
+        self._track_subgoals(new_subgoals, rows[moved])
+        d_sub = self.subgoal_dist[rows]
         stopped = action == STOP
         ex_r = progress_reward(d_sub_prev, d_sub, collided, cfg)
         # Only a sub-goal that was out of reach when it was set can be reached: a sub-goal set

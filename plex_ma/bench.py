@@ -28,7 +28,8 @@ stops with a small probability, so episodes are long):
   env's resets are timed too). Before timing, the landmark tables of the sub-goal
   searches are computed for every house, as in a long run (about 1.8 s for the 72
   procgen training houses; otherwise a short bench times this one-off cost whenever an
-  episode starts in a house not met yet);
+  episode starts in a house not met yet). Both sides' random actions are drawn before each
+  timed round, so neither time includes the random number generator;
 * ``ratio``: vector executor steps / raw simulator steps, the env's overhead over the
   simulator (a planner action steps no simulator, so counting it would flatter the env;
   ``ratio_all_actions`` counts it anyway). The goal is ``ratio >= 0.7`` at 64 worlds, 128 px.
@@ -86,18 +87,22 @@ class _RawSim:
                 self._reset(i)
             else:
                 self.sim.reset_world(i, episodes[i])
-        self.sim.step(self.rng.integers(1, 4, num_envs))  # compile / warm up
+        self.sim.step(self.actions(1)[0])  # compile / warm up
         self.t_steps = self.rng.integers(0, 500, num_envs) if steady else np.zeros(num_envs, np.int64)
         self.resets = 0
 
     def _reset(self, i: int) -> None:
         self.sim.reset_world(i, *self.sample(self.bank, int(self.rng.integers(len(self.bank))), self.rng, self.geo, i))
 
-    def run(self, calls: int) -> float:
-        """Step all worlds ``calls`` times; returns the seconds it took."""
+    def actions(self, calls: int) -> np.ndarray:
+        """Random moves (no STOP) for ``calls`` steps of all worlds, drawn ahead of timing."""
+        return self.rng.integers(1, 4, (calls, self.n))
+
+    def run(self, actions: np.ndarray) -> float:
+        """Step all worlds once per row of ``actions``; returns the seconds it took."""
         t0 = time.perf_counter()
-        for _ in range(calls):
-            self.sim.step(self.rng.integers(1, 4, self.n))
+        for a in actions:
+            self.sim.step(a)
             self.t_steps += 1
             for i in np.flatnonzero(self.t_steps >= 500):
                 self._reset(int(i))
@@ -109,7 +114,7 @@ class _RawSim:
 def bench_sim(num_envs: int, resolution: int, steps: int, seed: int, scenes: str = "procgen",
               num_scenes: int | None = None) -> dict:
     raw = _RawSim(num_envs, resolution, seed, scenes, num_scenes)
-    dt = raw.run(steps)
+    dt = raw.run(raw.actions(steps))
     return {"benchmark": "sim", "steps_per_second": steps * num_envs / dt, "num_envs": num_envs,
             "resolution": resolution, "steps": steps * num_envs, "seconds": dt, "resets": raw.resets,
             "memory_per_world_bytes": raw.sim.memory_per_world(), "scene_bank_bytes": raw.bank.nbytes,
@@ -161,18 +166,22 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
     venv.reset()
     n = num_envs
 
-    def vec_actions():
-        return dict(stop=(rng.random(n) < planner_stop_prob).astype(np.int64),
-                    subgoal=np.stack([rng.uniform(0, rho_max, n), rng.uniform(-np.pi, np.pi, n)], 1),
-                    action=np.where(rng.random(n) < executor_stop_prob, 0, rng.integers(1, 4, n)),
-                    eli=np.zeros((n, 128), np.float32))
+    zero_elis = np.zeros((n, 128), np.float32)
+
+    def vec_actions(calls: int) -> list[dict]:
+        """Both agents' actions for ``calls`` steps, drawn ahead of timing (as the raw
+        simulator's are): the bench times the env, not the random number generator."""
+        return [dict(stop=(rng.random(n) < planner_stop_prob).astype(np.int64),
+                     subgoal=np.stack([rng.uniform(0, rho_max, n), rng.uniform(-np.pi, np.pi, n)], 1),
+                     action=np.where(rng.random(n) < executor_stop_prob, 0, rng.integers(1, 4, n)), eli=zero_elis)
+                for _ in range(calls)]
 
     counts = {"executor_steps": 0, "ended": 0}
 
-    def run_vec(calls: int) -> float:
+    def run_vec(actions: list[dict]) -> float:
         t0 = time.perf_counter()
-        for _ in range(calls):
-            out = venv.step(**vec_actions())
+        for a in actions:
+            out = venv.step(**a)
             counts["executor_steps"] += int(np.sum(out.acted == EXECUTOR))
             counts["ended"] += len(out.episode_infos)
         return time.perf_counter() - t0
@@ -184,8 +193,8 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
     # sub-goal search, ~25 ms each) are in place. Without this, a short bench would time
     # that one-off cost whenever an episode starts in a house not seen yet.
     venv.worlds.sim.precompute_landmarks()
-    run_vec(warmup)
-    raw.run(warmup)
+    run_vec(vec_actions(warmup))
+    raw.run(raw.actions(warmup))
     # Interleave the two in rounds: on a shared machine the speed drifts over seconds, and
     # timing one after the other would fold that drift into the ratio.
     counts["executor_steps"] = counts["ended"] = 0
@@ -193,10 +202,11 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
     rounds = max(1, min(rounds, steps))
     for k in range(rounds):
         calls = steps // rounds + (k < steps % rounds)
+        vec_acts, raw_acts = vec_actions(calls), raw.actions(calls)
         c0 = time.process_time()
-        vec_dt += run_vec(calls)
+        vec_dt += run_vec(vec_acts)
         c1 = time.process_time()
-        sim_dt += raw.run(calls)
+        sim_dt += raw.run(raw_acts)
         vec_cpu += c1 - c0
         sim_cpu += time.process_time() - c1
     executor_steps = counts["executor_steps"]

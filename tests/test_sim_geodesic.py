@@ -188,6 +188,47 @@ def test_tracked_distance_in_a_house_equals_astar_with_the_scene_landmarks():
     assert checked == 240 and detour >= 10  # walls in the way, where the landmarks matter
 
 
+def test_tracked_distance_with_new_and_resumed_searches_in_one_call():
+    """A per-row ``new_target`` mask (the env batches the new sub-goals' searches with the
+    moved executors' resumed ones) gives what separate calls give, row by row."""
+    from plex_ma.envs.sim import BatchedSim, scene_bank
+    from plex_ma.envs.sim.episodes import sample_episode
+
+    bank = scene_bank("procgen", "train", 3)
+    geo = Geodesics(bank)
+    rng = np.random.default_rng(3)
+    sims = [BatchedSim(bank, 6, resolution=8, egomap=False) for _ in range(2)]
+    for i in range(6):
+        ep = sample_episode(bank, i % 3, rng, geo)
+        for sim in sims:
+            sim.reset_world(i, *ep)
+    targets = np.zeros((6, 2))
+    started = np.zeros(6, bool)
+    for step in range(30):
+        new = rng.random(6) < 0.3
+        new[~started] = True
+        started[:] = True
+        ang = rng.uniform(-np.pi, np.pi, 6)
+        raw = sims[0].pos + rng.uniform(0, 4, (6, 1)) * np.stack([np.cos(ang), np.sin(ang)], 1)
+        snapped = sims[0].snap_to_navigable(raw, np.arange(6))
+        targets[new] = snapped[new]
+        rows = rng.permutation(6)[: rng.integers(1, 7)]
+        rows = np.union1d(rows, np.flatnonzero(new))  # a new target is always measured
+        mask = new[rows]
+        together = sims[0].track_distance(targets, rows, new_target=mask)
+        apart = np.full(6, np.inf)
+        for flag in (True, False):
+            r = rows[mask == flag]
+            if len(r):
+                apart[r] = sims[1].track_distance(targets, r, new_target=flag)[r]
+        assert np.array_equal(together[rows], apart[rows])
+        for i in rows:
+            assert together[i] == pytest.approx(geo.distance(i % 3, sims[0].pos[i], targets[i]), rel=0, abs=1e-4)
+        acts = rng.integers(1, 4, 6)
+        for sim in sims:
+            sim.step(acts)
+
+
 def test_tracked_distance_to_an_unreachable_target_is_inf():
     from plex_ma.envs.sim import BatchedSim
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
 from . import kernels as K
@@ -203,17 +204,18 @@ class BatchedSim:
         ang = (ang + math.pi) % (2 * math.pi) - math.pi
         return np.stack([dist, ang], 1).astype(np.float32)
 
-    def track_distance(self, targets: np.ndarray, rows: np.ndarray, new_target: bool) -> np.ndarray:
+    def track_distance(self, targets: np.ndarray, rows: np.ndarray, new_target) -> np.ndarray:
         """Geodesic distance from each agent in ``rows`` to a target that stays fixed while
-        the agent moves (a sub-goal); ``new_target`` starts tracking ``targets[rows]`` from
-        the agents' current positions. Same values as :meth:`geodesic` (A*; up to float32
-        rounding of the goal field, < 1e-4 m), but each query resumes one search per target
-        (a resumable reverse A*, with the episode's goal field and the scene's landmark
-        fields as ALT landmarks) instead of a fresh A*. The worlds must have been reset
-        (their goal fields are used).
+        the agent moves (a sub-goal); ``new_target`` (a bool, or one per row) starts
+        tracking ``targets[r]`` from the agent's current position. Same values as
+        :meth:`geodesic` (A*; up to float32 rounding of the goal field, < 1e-4 m), but each
+        query resumes one search per target (a resumable reverse A*, with the episode's goal
+        field and the scene's landmark fields as ALT landmarks) instead of a fresh A*. The
+        worlds must have been reset (their goal fields are used).
         Returns (N,) with entries for ``rows`` filled (``inf`` if unreachable)."""
         b = self.bank
-        rows = np.asarray(rows, np.int64)
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        new = np.broadcast_to(np.asarray(new_target, np.bool_), rows.shape)
         if self._track is None:  # per-world search state, about 28 bytes per grid cell
             n, cells = self.n, b.max_cells
             self._track = dict(g=np.empty((n, cells)), stamp=np.zeros((n, cells), np.int32),
@@ -222,13 +224,17 @@ class BatchedSim:
                                size=np.zeros(n, np.int64), anchors=np.zeros((n, 2)), targets=np.zeros((n, 2)),
                                fa=np.zeros(n), la=np.zeros((n, NUM_LANDMARKS)))
         t = self._track
-        if new_target:
-            t["targets"][rows] = np.asarray(targets, np.float64).reshape(-1, 2)[rows]
+        if new.any():
+            t["targets"][rows[new]] = np.asarray(targets, np.float64).reshape(-1, 2)[rows[new]]
+        # New searches cost ten times a resumed one on average, and their costs vary a lot:
+        # hand them out first and one at a time, so the threads end together.
+        order = np.argsort(~new, kind="stable")
         landmarks = self.geo.landmarks(self.scene_idx[rows])
         out = np.full(self.n, np.inf)
-        K.track_batch(b.nav, b.moves, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos, t["targets"],
-                      t["anchors"], rows, np.full(len(rows), bool(new_target)), t["g"], t["stamp"], t["cur"], t["hk"],
-                      t["hv"], t["hpos"], t["size"], self.fields, t["fa"], landmarks, t["la"], out)
+        with numba.parallel_chunksize(1):
+            K.track_batch(b.nav, b.moves, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos,
+                          t["targets"], t["anchors"], rows[order], new[order], t["g"], t["stamp"], t["cur"], t["hk"],
+                          t["hv"], t["hpos"], t["size"], self.fields, t["fa"], landmarks, t["la"], out)
         out[out >= K.INF] = np.inf
         return out
 
