@@ -229,6 +229,33 @@ def test_tracked_distance_with_new_and_resumed_searches_in_one_call():
             sim.step(acts)
 
 
+def test_tracked_distance_inside_the_closed_cells_needs_no_retargeting():
+    """Walking along the path the search has closed, the query answers from the closed
+    cells' final distances without re-keying the search (its anchor stays put), and the
+    answers are still exact."""
+    from plex_ma.envs.sim import BatchedSim
+
+    grid = rasterize(Scene("room", np.array(room_walls(0.0, 0.0, 5.0, 3.0))))
+    bank = SceneBank([grid])
+    sim = BatchedSim(bank, 1, resolution=8, egomap=False)
+    sim.fields[0][: grid.kind.size] = np.inf  # no goal field: octile and landmarks only
+    geo = Geodesics(bank)
+    target = np.array([[4.3, 1.5]])
+    sim.pos[0] = (0.7, 1.5)
+    assert sim.track_distance(target, np.array([0]), new_target=True)[0] == pytest.approx(
+        geo.distance(0, sim.pos[0], target[0]), abs=1e-9)
+    for x in (1.2, 2.05, 3.1):  # along the straight path the first query closed
+        sim.pos[0] = (x, 1.5)
+        got = sim.track_distance(target, np.array([0]), new_target=False)[0]
+        assert got == pytest.approx(geo.distance(0, sim.pos[0], target[0]), abs=1e-9)
+        assert got < 4.3 - x + 0.1
+        assert tuple(sim._track["anchors"][0]) == (0.7, 1.5)
+    sim.pos[0] = (2.0, 0.6)  # off the path: re-keyed towards the new position
+    got = sim.track_distance(target, np.array([0]), new_target=False)[0]
+    assert got == pytest.approx(geo.distance(0, sim.pos[0], target[0]), abs=1e-9)
+    assert tuple(sim._track["anchors"][0]) == (2.0, 0.6)
+
+
 def test_tracked_distance_to_an_unreachable_target_is_inf():
     from plex_ma.envs.sim import BatchedSim
 

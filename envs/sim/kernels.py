@@ -733,6 +733,17 @@ def _retarget(nav, off, h, w, ox, oy, cs, g, hk, hv, hpos, size, ax, ay, F, LM, 
     return fa
 
 
+@njit(cache=True)
+def _settled(nav, off, h, w, ox, oy, cs, stamp, cur, hpos, px, py):
+    """Whether the search ``cur`` has closed every cell that links the point (px, py)."""
+    r0, c0 = _block(ox, oy, cs, px, py)
+    for k in range(4):
+        v, _, _, _ = _link(nav, off, h, w, ox, oy, cs, r0, c0, k, px, py)
+        if v >= 0 and not (stamp[v] == cur and hpos[v] == -2):
+            return False
+    return True
+
+
 @njit(cache=True, parallel=True)
 def track_batch(nav, moves, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, anchors, rows, init, g,
                 stamp, cur, hk, hv, hpos, size, fields, fa, LM, la, out):
@@ -757,9 +768,12 @@ def track_batch(nav, moves, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, tar
             landmarks_at(nav, off, h, w, ox, oy, cs, LMs, pos[r, 0], pos[r, 1], la[r])
             size[r] = _seed(nav, off, h, w, ox, oy, cs, targets[r, 0], targets[r, 1], g[r], stamp[r], cur[r], hk[r],
                             hv[r], hpos[r], 0, pos[r, 0], pos[r, 1], fields[r], fa[r], LMs, la[r])
-        elif pos[r, 0] != anchors[r, 0] or pos[r, 1] != anchors[r, 1]:
+        elif (pos[r, 0] != anchors[r, 0] or pos[r, 1] != anchors[r, 1]) and not _settled(
+                nav, off, h, w, ox, oy, cs, stamp[r], cur[r], hpos[r], pos[r, 0], pos[r, 1]):
             # Keyed towards the old position, the search would grow around the line from
-            # the target to it until it happened to cover the new one.
+            # the target to it until it happened to cover the new one. (Where the new
+            # position's cells are closed already, their distances are final: the query
+            # needs no re-keying, whatever the anchor.)
             anchors[r, 0] = pos[r, 0]
             anchors[r, 1] = pos[r, 1]
             fa[r] = _retarget(nav, off, h, w, ox, oy, cs, g[r], hk[r], hv[r], hpos[r], size[r], pos[r, 0], pos[r, 1],
