@@ -329,33 +329,22 @@ def move(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, heading, actions,
 
 @njit(cache=True, inline="always")
 def _heap_push(hk, hv, hpos, size, key, v):
-    i = size
-    hk[i] = key
-    hv[i] = v
-    hpos[v] = i
-    while i > 0:
-        p = (i - 1) >> 1
-        if hk[p] <= hk[i]:
-            break
-        hk[p], hk[i] = hk[i], hk[p]
-        hv[p], hv[i] = hv[i], hv[p]
-        hpos[hv[i]] = i
-        hpos[hv[p]] = p
-        i = p
+    hv[size] = v
+    hpos[v] = size
+    _heap_decrease(hk, hv, hpos, size, key)
     return size + 1
 
 
 @njit(cache=True, inline="always")
 def _heap_decrease(hk, hv, hpos, i, key):
+    """Set the key at heap position ``i`` to ``key`` (not above the old one) and move the
+    entry up until its parent is smaller."""
     hk[i] = key
     while i > 0:
         p = (i - 1) >> 1
         if hk[p] <= hk[i]:
             break
-        hk[p], hk[i] = hk[i], hk[p]
-        hv[p], hv[i] = hv[i], hv[p]
-        hpos[hv[i]] = i
-        hpos[hv[p]] = p
+        _swap(hk, hv, hpos, i, p)
         i = p
 
 
@@ -385,11 +374,17 @@ def _sift_down(hk, hv, hpos, size, i):
             m = l + 1
         if hk[i] <= hk[m]:
             break
-        hk[m], hk[i] = hk[i], hk[m]
-        hv[m], hv[i] = hv[i], hv[m]
-        hpos[hv[i]] = i
-        hpos[hv[m]] = m
+        _swap(hk, hv, hpos, i, m)
         i = m
+
+
+@njit(cache=True, inline="always")
+def _swap(hk, hv, hpos, i, j):
+    """Swap heap positions ``i`` and ``j``, keeping ``hpos`` (cell -> position) in step."""
+    hk[i], hk[j] = hk[j], hk[i]
+    hv[i], hv[j] = hv[j], hv[i]
+    hpos[hv[i]] = i
+    hpos[hv[j]] = j
 
 
 @njit(cache=True)
