@@ -358,12 +358,12 @@ class PlexWorlds(_Worlds):
         if len(ex):
             self._executor_step(ex, act_a, eli_a, out, new)
         elif len(new):
-            self._track_subgoals(new, ex)
+            self._measure_subgoals(new, ex)
         return out
 
     def _planner_step(self, rows, stop, sg, out: PlexStep) -> np.ndarray:
         """Apply planner actions; returns the worlds that got a new sub-goal (their
-        distance to it is measured along with the executors' moves: :meth:`_track_subgoals`)."""
+        distance to it is measured along with the executors' moves: :meth:`_measure_subgoals`)."""
         cfg = self.cfg
         out.acted[rows] = PLANNER
         self.planner_decisions[rows] += 1
@@ -386,15 +386,13 @@ class PlexWorlds(_Worlds):
             self.turn_steps[rows] = 0
         return rows
 
-    def _track_subgoals(self, new, moved) -> None:
-        """Geodesic distance to the sub-goal: a new search in the worlds ``new`` (which also
-        sets their ``subgoal_dist0``), a resumed one in the worlds whose agent ``moved``. One
-        batch for both lets the threads share out the few long new searches and the many
-        short resumed ones."""
+    def _measure_subgoals(self, new, moved) -> None:
+        """Geodesic distance to the sub-goal in the worlds ``new`` (which also sets their
+        ``subgoal_dist0``) and in the worlds whose agent ``moved``, in one batch."""
         rows = np.concatenate([new, moved])
         if not len(rows):
             return
-        d = self.sim.track_distance(self.subgoal, rows, new_target=np.arange(len(rows)) < len(new))[rows]
+        d = self.sim.distance_to(self.subgoal, rows)[rows]
         if not np.all(np.isfinite(d)):
             bad = rows[~np.isfinite(d)]
             raise RuntimeError(f"sub-goal unreachable in worlds {bad.tolist()} after snapping; this is a bug")
@@ -414,10 +412,9 @@ class PlexWorlds(_Worlds):
         pos_prev = sim.pos[rows].copy()
         collided = sim.step(acts, active)[rows]
         # The sub-goal is fixed during the turn, so the geodesic distance to it changes only
-        # where the agent moved; turns, STOP and blocked moves keep the previous value. The
-        # search behind it resumes from where the turn's earlier queries left it.
+        # where the agent moved; turns, STOP and blocked moves keep the previous value.
         moved = np.any(sim.pos[rows] != pos_prev, axis=1)
-        self._track_subgoals(new_subgoals, rows[moved])
+        self._measure_subgoals(new_subgoals, rows[moved])
         d_sub = self.subgoal_dist[rows]
         stopped = action == STOP
         ex_r = progress_reward(d_sub_prev, d_sub, collided, cfg)

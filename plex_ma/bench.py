@@ -25,8 +25,8 @@ stops with a small probability, so episodes are long):
   machine's speed falls on both. Its worlds start in the vector env's first episodes
   (rendering costs depend on the house and the pose) and reset at their long-run rate, one
   per world every 500 steps, with episode clocks spread over [0, 500) at the start (the
-  env's resets are timed too). Before timing, the landmark tables of the sub-goal
-  searches are computed for every house, as in a long run (about 1.8 s for the 72
+  env's resets are timed too). Before timing, the corner graphs behind the sub-goal
+  distances are built for every house, as in a long run (well under a second for the 72
   procgen training houses; otherwise a short bench times this one-off cost whenever an
   episode starts in a house not met yet). Both sides' random actions are drawn before each
   timed round, so neither time includes the random number generator;
@@ -189,10 +189,10 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
     # The raw simulator starts in the vector env's first episodes (the same houses and
     # poses: the cost of rendering depends on them) and resets at its long-run rate.
     raw = _RawSim(num_envs, resolution, seed, scenes, num_scenes, episodes=list(venv.worlds.sim.episodes), steady=True)
-    # A long run has met every house: its landmark tables (computed on a house's first
-    # sub-goal search, ~25 ms each) are in place. Without this, a short bench would time
-    # that one-off cost whenever an episode starts in a house not seen yet.
-    venv.worlds.sim.precompute_landmarks()
+    # A long run has met every house: its corner graph (built on a house's first sub-goal,
+    # ~5 ms each) is in place. Without this, a short bench would time that one-off cost
+    # whenever an episode starts in a house not seen yet.
+    venv.worlds.sim.prepare_geodesics()
     run_vec(vec_actions(warmup))
     raw.run(raw.actions(warmup))
     # Interleave the two in rounds: on a shared machine the speed drifts over seconds, and

@@ -1,5 +1,5 @@
-"""Geodesic distance: the simulator's Dijkstra fields and A* against a reference Dijkstra
-(scipy) over the same 8-connected navigable grid without corner cutting."""
+"""Geodesic distance: the simulator's Dijkstra fields, A* and corner graphs against a
+reference Dijkstra (scipy) over the same 8-connected navigable grid without corner cutting."""
 
 from __future__ import annotations
 
@@ -126,147 +126,104 @@ def test_unreachable_points_are_inf():
     assert geo.distance(0, left, left + np.array([0.5, 0.5])) == pytest_approx(math.hypot(0.5, 0.5))
 
 
-@settings(max_examples=25, deadline=None)
+def test_corners_of_a_lone_obstacle_are_its_four_diagonal_neighbours():
+    """A corner sits diagonally beside an obstacle's convex corner; a wall's straight side
+    and the concave corners of a room make none."""
+    from plex_ma.envs.sim.corners import corner_mask
+    from plex_ma.envs.sim.kernels import move_mask
+
+    nav = np.ones((7, 9), bool)
+    nav[3, 4] = False  # one blocked cell in open floor
+    got = corner_mask(move_mask(nav))
+    want = np.zeros_like(nav)
+    want[[2, 2, 4, 4], [3, 5, 3, 5]] = True
+    assert np.array_equal(got, want)
+    nav[:, 6] = False  # a wall across the room: straight sides, concave room corners
+    nav[3, 4] = True
+    assert not corner_mask(move_mask(nav)).any()
+
+
+def random_obstacle_scene(seed: int) -> Scene:
+    """A 4 m x 3 m room with random walls at any angle (their rasterised edges are
+    staircases of corners) and random boxes."""
+    rng = np.random.default_rng(seed)
+    walls = room_walls(0.0, 0.0, 4.0, 3.0)
+    for _ in range(rng.integers(1, 6)):
+        walls.append(tuple(rng.uniform([0, 0, 0, 0], [4, 3, 4, 3])))
+    boxes = [(x, y, x + rng.uniform(0.1, 1.0), y + rng.uniform(0.1, 1.0))
+             for x, y in rng.uniform([0, 0], [3.5, 2.5], (rng.integers(0, 4), 2))]
+    return Scene(f"obstacles-{seed}", np.array(walls), boxes=np.array(boxes).reshape(-1, 4),
+                 box_heights=np.full(len(boxes), 0.8), box_categories=np.zeros(len(boxes), np.int64))
+
+
+@settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**32 - 1))
-def test_tracked_distance_equals_reference_while_the_agent_moves(seed):
-    """The resumable search behind the sub-goal distance: every query, from wherever the
-    agent has walked since the target was set (far from the anchor too), and after new
-    targets, equals the reference Dijkstra (the goal field, the search's landmark, is
-    float32: 1e-4 m); unreachable targets stay inf."""
+def test_distance_to_equals_reference_dijkstra_among_random_obstacles(seed):
+    """The corner graph's distance between any two points (the sub-goal distance) equals
+    the reference Dijkstra, among random walls at any angle and boxes; ``inf`` exactly
+    where the reference cannot reach."""
     from plex_ma.envs.sim import BatchedSim
 
-    grid, bank, geo = house()
+    grid = rasterize(random_obstacle_scene(seed))
     rng = np.random.default_rng(seed)
-    sim = BatchedSim(bank, 3, resolution=8, egomap=False)
-    for i in range(3):  # each world's goal field: the landmark of the search's heuristic
-        geo.field(0, random_navigable_point(grid, rng), out=sim.fields[i])
-    targets = np.zeros((3, 2))
-    refs = [None] * 3
-    for step in range(40):
-        new = step % 13 == 0
-        if new:
-            for i in range(3):
-                targets[i] = random_navigable_point(grid, rng)
-                refs[i] = reference_field(grid, targets[i])
-        rows = np.array([i for i in range(3) if new or rng.random() < 0.7])
-        for i in range(3):  # teleport the agents anywhere, near or far from the anchor
-            sim.pos[i] = random_navigable_point(grid, rng) if rng.random() < 0.3 else sim.pos[i]
-        got = sim.track_distance(targets, rows if len(rows) else np.arange(3), new_target=new)
-        for i in (rows if len(rows) else range(3)):
-            assert got[i] == pytest.approx(reference_lookup(grid, refs[i], sim.pos[i]), rel=0, abs=1e-4)
+    sim = BatchedSim(SceneBank([grid]), 16, resolution=8, egomap=False)
+    for _ in range(3):
+        target = random_navigable_point(grid, rng)
+        ref = reference_field(grid, target)
+        for i in range(16):
+            sim.pos[i] = random_navigable_point(grid, rng)
+        got = sim.distance_to(np.repeat(target[None], 16, 0), np.arange(16))
+        want = np.array([reference_lookup(grid, ref, p) for p in sim.pos])
+        assert np.array_equal(np.isinf(got), np.isinf(want))
+        fin = np.isfinite(want)
+        np.testing.assert_allclose(got[fin], want[fin], rtol=0, atol=1e-9)
 
 
-def test_tracked_distance_in_a_house_equals_astar_with_the_scene_landmarks():
+def test_distance_to_in_houses_equals_astar():
     """Sub-goals as the planner sets them (within 4 m, snapped; many behind walls) in
-    procedural houses: the tracked distance, whose heuristic uses the scene's landmark
-    fields, equals an independent A* from every position of a random walk."""
-    from plex_ma.envs.sim import BatchedSim, scene_bank
-    from plex_ma.envs.sim.episodes import NUM_LANDMARKS, sample_episode
-
-    bank = scene_bank("procgen", "train", 4)
-    geo = Geodesics(bank)
-    rng = np.random.default_rng(0)
-    sim = BatchedSim(bank, 4, resolution=8, egomap=False)
-    for i in range(4):
-        sim.reset_world(i, *sample_episode(bank, i, rng, geo))
-    checked = detour = 0
-    for step in range(60):
-        if step % 6 == 0:
-            ang = sim.heading + rng.uniform(-np.pi, np.pi, 4)
-            raw = sim.pos + rng.uniform(0, 4, (4, 1)) * np.stack([np.cos(ang), np.sin(ang)], 1)
-            targets = sim.snap_to_navigable(raw, np.arange(4))
-            got = sim.track_distance(targets, np.arange(4), new_target=True)
-        else:
-            sim.step(rng.integers(1, 4, 4))
-            got = sim.track_distance(targets, np.arange(4), new_target=False)
-        for i in range(4):
-            want = geo.distance(i, sim.pos[i], targets[i])
-            assert got[i] == pytest.approx(want, rel=0, abs=1e-4)
-            checked += 1
-            detour += want > 1.3 * np.hypot(*(sim.pos[i] - targets[i])) + 0.1
-    assert bank.landmarks_done.all() and bank.landmarks.shape[1] == NUM_LANDMARKS
-    assert checked == 240 and detour >= 10  # walls in the way, where the landmarks matter
-
-
-def test_tracked_distance_with_new_and_resumed_searches_in_one_call():
-    """A per-row ``new_target`` mask (the env batches the new sub-goals' searches with the
-    moved executors' resumed ones) gives what separate calls give, row by row."""
+    procedural houses and real floor plans: the distance equals an independent A* from
+    every position of a random walk, in rows of any subset of the worlds."""
     from plex_ma.envs.sim import BatchedSim, scene_bank
     from plex_ma.envs.sim.episodes import sample_episode
 
-    bank = scene_bank("procgen", "train", 3)
-    geo = Geodesics(bank)
-    rng = np.random.default_rng(3)
-    sims = [BatchedSim(bank, 6, resolution=8, egomap=False) for _ in range(2)]
-    for i in range(6):
-        ep = sample_episode(bank, i % 3, rng, geo)
-        for sim in sims:
-            sim.reset_world(i, *ep)
-    targets = np.zeros((6, 2))
-    started = np.zeros(6, bool)
-    for step in range(30):
-        new = rng.random(6) < 0.3
-        new[~started] = True
-        started[:] = True
-        ang = rng.uniform(-np.pi, np.pi, 6)
-        raw = sims[0].pos + rng.uniform(0, 4, (6, 1)) * np.stack([np.cos(ang), np.sin(ang)], 1)
-        snapped = sims[0].snap_to_navigable(raw, np.arange(6))
-        targets[new] = snapped[new]
-        rows = rng.permutation(6)[: rng.integers(1, 7)]
-        rows = np.union1d(rows, np.flatnonzero(new))  # a new target is always measured
-        mask = new[rows]
-        together = sims[0].track_distance(targets, rows, new_target=mask)
-        apart = np.full(6, np.inf)
-        for flag in (True, False):
-            r = rows[mask == flag]
-            if len(r):
-                apart[r] = sims[1].track_distance(targets, r, new_target=flag)[r]
-        assert np.array_equal(together[rows], apart[rows])
-        for i in rows:
-            assert together[i] == pytest.approx(geo.distance(i % 3, sims[0].pos[i], targets[i]), rel=0, abs=1e-4)
-        acts = rng.integers(1, 4, 6)
-        for sim in sims:
-            sim.step(acts)
+    checked = detour = 0
+    for source in ("procgen", "r2v"):
+        bank = scene_bank(source, "train", 4)
+        geo = Geodesics(bank)
+        rng = np.random.default_rng(0)
+        sim = BatchedSim(bank, 4, resolution=8, egomap=False)
+        for i in range(4):
+            sim.reset_world(i, *sample_episode(bank, i, rng, geo))
+        for step in range(60):
+            if step % 6 == 0:
+                ang = sim.heading + rng.uniform(-np.pi, np.pi, 4)
+                raw = sim.pos + rng.uniform(0, 4, (4, 1)) * np.stack([np.cos(ang), np.sin(ang)], 1)
+                targets = sim.snap_to_navigable(raw, np.arange(4))
+            else:
+                sim.step(rng.integers(1, 4, 4))
+            rows = rng.permutation(4)[: rng.integers(1, 5)]
+            got = sim.distance_to(targets, rows)
+            assert np.all(np.isinf(np.delete(got, rows)))  # other rows untouched
+            for i in rows:
+                want = geo.distance(int(sim.scene_idx[i]), sim.pos[i], targets[i])
+                assert got[i] == pytest.approx(want, rel=0, abs=1e-9)
+                checked += 1
+                detour += want > 1.3 * np.hypot(*(sim.pos[i] - targets[i])) + 0.1
+        assert bank.corners.done[:4].all() and bank.corners.n_corners[:4].min() > 0
+    assert checked > 200 and detour >= 20  # walls in the way, where the corners matter
 
 
-def test_tracked_distance_inside_the_closed_cells_needs_no_retargeting():
-    """Walking along the path the search has closed, the query answers from the closed
-    cells' final distances without re-keying the search (its anchor stays put), and the
-    answers are still exact."""
-    from plex_ma.envs.sim import BatchedSim
-
-    grid = rasterize(Scene("room", np.array(room_walls(0.0, 0.0, 5.0, 3.0))))
-    bank = SceneBank([grid])
-    sim = BatchedSim(bank, 1, resolution=8, egomap=False)
-    sim.fields[0][: grid.kind.size] = np.inf  # no goal field: octile and landmarks only
-    geo = Geodesics(bank)
-    target = np.array([[4.3, 1.5]])
-    sim.pos[0] = (0.7, 1.5)
-    assert sim.track_distance(target, np.array([0]), new_target=True)[0] == pytest.approx(
-        geo.distance(0, sim.pos[0], target[0]), abs=1e-9)
-    for x in (1.2, 2.05, 3.1):  # along the straight path the first query closed
-        sim.pos[0] = (x, 1.5)
-        got = sim.track_distance(target, np.array([0]), new_target=False)[0]
-        assert got == pytest.approx(geo.distance(0, sim.pos[0], target[0]), abs=1e-9)
-        assert got < 4.3 - x + 0.1
-        assert tuple(sim._track["anchors"][0]) == (0.7, 1.5)
-    sim.pos[0] = (2.0, 0.6)  # off the path: re-keyed towards the new position
-    got = sim.track_distance(target, np.array([0]), new_target=False)[0]
-    assert got == pytest.approx(geo.distance(0, sim.pos[0], target[0]), abs=1e-9)
-    assert tuple(sim._track["anchors"][0]) == (2.0, 0.6)
-
-
-def test_tracked_distance_to_an_unreachable_target_is_inf():
+def test_distance_to_an_unreachable_target_is_inf():
     from plex_ma.envs.sim import BatchedSim
 
     grid = rasterize(two_rooms_no_door())
     sim = BatchedSim(SceneBank([grid]), 1, resolution=8, egomap=False)
     sim.pos[0] = (1.5, 1.5)
-    assert sim.track_distance(np.array([[4.5, 1.5]]), np.array([0]), new_target=True)[0] == math.inf
+    assert sim.distance_to(np.array([[4.5, 1.5]]), np.array([0]))[0] == math.inf
     target = np.array([[2.0, 2.0]])
-    assert sim.track_distance(target, np.array([0]), new_target=True)[0] == pytest.approx(math.hypot(0.5, 0.5))
+    assert sim.distance_to(target, np.array([0]))[0] == pytest.approx(math.hypot(0.5, 0.5))
     sim.pos[0] = (1.0, 1.0)
-    assert sim.track_distance(target, np.array([0]), new_target=False)[0] == pytest.approx(math.hypot(1.0, 1.0))
+    assert sim.distance_to(target, np.array([0]))[0] == pytest.approx(math.hypot(1.0, 1.0))
 
 
 @settings(max_examples=40, deadline=None)

@@ -117,20 +117,22 @@ def door_cut(scene: Scene) -> float:
     return scene.wall_thickness / 2 + CELL_SIZE
 
 
-def wall_rects(scene: Scene) -> np.ndarray:
-    """Axis-aligned walls as solid rectangles (x0, y0, x1, y1): each segment thickened by
-    half the wall thickness on every side, with the door openings cut out. (A segment's
-    thickened rectangle contains its round-capped band, so clearance from these rectangles
-    implies clearance from the wall segments.)"""
+def wall_pieces(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """The walls as the rasteriser draws them, every point within half the wall thickness
+    of a segment, with the door openings cut out: (rectangles, round ends). Each segment
+    between door openings is a rectangle (x0, y0, x1, y1) along it, square where a door
+    cuts it; the segments' own ends are round, discs of half the thickness about the
+    end points (x, y) listed in ``ends``. (Square ends there would be stricter than the
+    scene: the agent may pass a free wall end closer than its rectangle's corner.)"""
     h = scene.wall_thickness / 2
     ext = door_cut(scene)
-    out = []
+    out, ends = [], []
     for x0, y0, x1, y1 in scene.walls.astype(np.float64):
         vertical = abs(x0 - x1) < 1e-9
         assert vertical or abs(y0 - y1) < 1e-9, "only axis-aligned walls are supported here"
         line = x0 if vertical else y0
         lo, hi = (min(y0, y1), max(y0, y1)) if vertical else (min(x0, x1), max(x0, x1))
-        pieces = [(lo - h, hi + h)]
+        pieces = [(lo, hi)]
         for dx0, dy0, dx1, dy1 in scene.doors.astype(np.float64):
             if vertical and abs(dx0 - dx1) < 1e-9 and abs(dx0 - line) < 1e-6:
                 a, b = min(dy0, dy1) - ext, max(dy0, dy1) + ext
@@ -150,7 +152,8 @@ def wall_rects(scene: Scene) -> np.ndarray:
             pieces = nxt
         for p, q in pieces:
             out.append((line - h, p, line + h, q) if vertical else (p, line - h, q, line + h))
-    return np.array(out, np.float64).reshape(-1, 4)
+            ends += [(line, t) if vertical else (t, line) for t in (p, q) if t in (lo, hi)]
+    return np.array(out, np.float64).reshape(-1, 4), np.array(ends, np.float64).reshape(-1, 2)
 
 
 def rect_distance(p, rects: np.ndarray) -> np.ndarray:
@@ -171,9 +174,14 @@ def segment_distance(p, segs: np.ndarray) -> np.ndarray:
     return np.hypot(*(np.asarray(p) - (a + t[:, None] * d)).T)
 
 
-def obstacle_rects(scene: Scene) -> np.ndarray:
-    """Every obstacle of the scene's exact geometry as a rectangle: walls with their door
-    openings cut out, and the furniture boxes (every box stands on the floor, so it blocks
-    the agent)."""
-    return np.concatenate([wall_rects(scene), scene.boxes.astype(np.float64).reshape(-1, 4)])
+def obstacle_clearance(p, scene: Scene) -> float:
+    """Distance from point ``p`` to the nearest obstacle of the scene's exact geometry:
+    the walls (:func:`wall_pieces`) and the furniture boxes (every box stands on the
+    floor, so it blocks the agent)."""
+    rects, ends = wall_pieces(scene)
+    rects = np.concatenate([rects, scene.boxes.astype(np.float64).reshape(-1, 4)])
+    d = float(rect_distance(p, rects).min())
+    if len(ends):
+        d = min(d, float(np.hypot(*(ends - np.asarray(p)).T).min()) - scene.wall_thickness / 2)
+    return d
 

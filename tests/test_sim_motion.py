@@ -15,7 +15,7 @@ from plex_ma.envs.sim import (MOVE_FORWARD, STOP, TURN_LEFT, TURN_RIGHT, Batched
                               SceneBank, rasterize)
 from plex_ma.envs.sim.scene import AGENT_RADIUS
 
-from .test_sim_helpers import (obstacle_rects, random_navigable_point, rect_distance, room_walls, segment_distance,
+from .test_sim_helpers import (obstacle_clearance, random_navigable_point, room_walls, segment_distance, wall_pieces,
                                sim_at, small_house)
 
 
@@ -45,13 +45,14 @@ WORLDS = {"house": small_house, "furnished": furnished_room, "closed": closed_ro
 def world(name: str):
     scene = WORLDS[name]()
     grid = rasterize(scene)
-    return scene, grid, SceneBank([grid]), obstacle_rects(scene)
+    return scene, grid, SceneBank([grid])
 
 
 def test_scenes_have_obstacles_and_doors():
     for name in WORLDS:
-        scene, grid, _, rects = world(name)
-        assert len(scene.boxes) and (name == "closed" or len(rects) > len(scene.walls) + len(scene.boxes))
+        scene, grid, _ = world(name)
+        rects, _ = wall_pieces(scene)
+        assert len(scene.boxes) and (name == "closed" or len(rects) > len(scene.walls))
         assert int(grid.component.max()) == 0  # one connected navigable component
 
 
@@ -61,7 +62,7 @@ actions = st.lists(st.sampled_from([MOVE_FORWARD] * 4 + [TURN_LEFT, TURN_RIGHT, 
 @settings(max_examples=40, deadline=None)
 @given(name=st.sampled_from(sorted(WORLDS)), seed=st.integers(0, 2**32 - 1), acts=actions)
 def test_random_walks_never_enter_obstacles(name, seed, acts):
-    scene, grid, bank, rects = world(name)
+    scene, grid, bank = world(name)
     rng = np.random.default_rng(seed)
     start = random_navigable_point(grid, rng)
     sim = BatchedSim(bank, 1, resolution=8, egomap=False)
@@ -73,7 +74,7 @@ def test_random_walks_never_enter_obstacles(name, seed, acts):
         collided = bool(sim.step(np.array([a]))[0])
         p = sim.pos[0]
         assert grid.is_navigable(p), f"centre {p} left the navigable cells"
-        clearance = rect_distance(p, rects).min()
+        clearance = obstacle_clearance(p, scene)
         assert clearance >= AGENT_RADIUS - 1e-9, f"disc at {p} overlaps an obstacle ({clearance:.4f} m)"
         if solid_walls is not None:
             assert segment_distance(p, solid_walls).min() >= scene.wall_thickness / 2 + AGENT_RADIUS - 1e-9

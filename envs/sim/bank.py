@@ -6,6 +6,7 @@ import colorsys
 
 import numpy as np
 
+from .corners import CornerGraphs
 from .kernels import move_mask
 from .scene import MAT_FURNITURE, NUM_FURNITURE_CATEGORIES, SceneGrid
 
@@ -84,10 +85,15 @@ class SceneBank:
         self.room_wall_rgb = np.concatenate(walls).reshape(-1, 3) if walls else np.zeros((0, 3))
         self.room_floor_rgb = np.concatenate(floors).reshape(-1, 3) if floors else np.zeros((0, 3))
         self.mat_rgb = MATERIAL_RGB.copy()
-        # Landmark fields for the geodesic searches' heuristic, filled scene by scene on
-        # first use (see episodes.Geodesics.landmarks): (cells, landmarks) float32.
-        self.landmarks: np.ndarray | None = None
-        self.landmarks_done = np.zeros(len(grids), np.bool_)
+        self._corners = None
+
+    @property
+    def corners(self) -> CornerGraphs:
+        """The scenes' corner graphs, for exact point-to-point geodesic distances (built
+        scene by scene on first use and shared by every user of the bank)."""
+        if self._corners is None:
+            self._corners = CornerGraphs(self)
+        return self._corners
 
     def __len__(self) -> int:
         return len(self.grids)

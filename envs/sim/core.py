@@ -31,7 +31,7 @@ import numpy as np
 
 from . import kernels as K
 from .bank import SceneBank
-from .episodes import NUM_LANDMARKS, Episode, Geodesics
+from .episodes import Episode, Geodesics
 from .scene import AGENT_HEIGHT, CEILING_HEIGHT
 
 STOP, MOVE_FORWARD, TURN_LEFT, TURN_RIGHT = 0, 1, 2, 3
@@ -94,7 +94,6 @@ class BatchedSim:
         self.amap = np.zeros((n, self.amap_size, self.amap_size) if egomap else (n, 1, 1), np.uint8)
         self.amap_origin = np.zeros((n, 2), np.float64)
         self.geo = Geodesics(bank)
-        self._track = None
         self._stride = max(1, R // 32)
         self._all = np.ones(n, np.bool_)
 
@@ -203,46 +202,23 @@ class BatchedSim:
         ang = (ang + math.pi) % (2 * math.pi) - math.pi
         return np.stack([dist, ang], 1).astype(np.float32)
 
-    def track_distance(self, targets: np.ndarray, rows: np.ndarray, new_target) -> np.ndarray:
-        """Geodesic distance from each agent in ``rows`` to a target that stays fixed while
-        the agent moves (a sub-goal); ``new_target`` (a bool, or one per row) starts
-        tracking ``targets[r]`` from the agent's current position. Same values as
-        :meth:`geodesic` (A*; up to float32 rounding of the goal field, < 1e-4 m), but each
-        query resumes one search per target (a resumable reverse A*, with the episode's goal
-        field and the scene's landmark fields as ALT landmarks) instead of a fresh A*. The
-        worlds must have been reset (their goal fields are used).
-        Returns (N,) with entries for ``rows`` filled (``inf`` if unreachable)."""
-        b = self.bank
+    def distance_to(self, targets: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Geodesic distance from the agent of each world ``r`` in ``rows`` to the point
+        ``targets[r]`` (a sub-goal): the same values as :meth:`geodesic` (A*), from the
+        scene's corner graph (:mod:`.corners`) in about 15 microseconds a world.
+        Returns (N,) with the entries of ``rows`` filled (``inf`` if unreachable)."""
         rows = np.asarray(rows, np.int64).reshape(-1)
-        new = np.broadcast_to(np.asarray(new_target, np.bool_), rows.shape)
-        if self._track is None:  # per-world search state, about 28 bytes per grid cell
-            n, cells = self.n, b.max_cells
-            self._track = dict(g=np.empty((n, cells)), stamp=np.zeros((n, cells), np.int32),
-                               hk=np.empty((n, cells)), hv=np.empty((n, cells), np.int32),
-                               hpos=np.empty((n, cells), np.int32), cur=np.zeros(n, np.int32),
-                               size=np.zeros(n, np.int64), anchors=np.zeros((n, 2)), targets=np.zeros((n, 2)),
-                               fa=np.zeros(n), la=np.zeros((n, NUM_LANDMARKS)))
-        t = self._track
-        if new.any():
-            t["targets"][rows[new]] = np.asarray(targets, np.float64).reshape(-1, 2)[rows[new]]
-        # A new search costs ten times a resumed one on average. The kernel's threads each
-        # take a contiguous share of the rows: deal the new searches out evenly among them.
-        # (Handing out rows one at a time instead was 5% slower in all.)
-        order = np.argsort(~new, kind="stable")
-        order = np.concatenate([order[0::2], order[1::2]])
-        landmarks = self.geo.landmarks(self.scene_idx[rows])
         out = np.full(self.n, np.inf)
-        K.track_batch(b.nav, b.moves, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos,
-                      t["targets"], t["anchors"], rows[order], new[order], t["g"], t["stamp"], t["cur"], t["hk"],
-                      t["hv"], t["hpos"], t["size"], self.fields, t["fa"], landmarks, t["la"], out)
+        self.bank.corners.distances(self.scene_idx, self.pos, np.asarray(targets, np.float64).reshape(self.n, 2),
+                                    rows, out)
         out[out >= K.INF] = np.inf
         return out
 
-    def precompute_landmarks(self, scenes=None) -> None:
-        """Compute the landmark fields of ``scenes`` (default: every scene of the bank) now
-        instead of at each scene's first sub-goal search (about 25 ms per procgen house,
-        32 bytes per grid cell; see :meth:`Geodesics.landmarks`)."""
-        self.geo.landmarks(np.arange(len(self.bank)) if scenes is None else scenes)
+    def prepare_geodesics(self, scenes=None) -> None:
+        """Build the corner graphs of ``scenes`` (default: every scene of the bank) now
+        instead of at each scene's first :meth:`distance_to` (about 5 ms per procedural
+        house)."""
+        self.bank.corners.prepare(np.arange(len(self.bank)) if scenes is None else scenes)
 
     def geodesic(self, i: int, a: np.ndarray, b: np.ndarray) -> float:
         """Geodesic distance between two points in world ``i``'s scene (``inf`` if not connected)."""

@@ -31,7 +31,6 @@ from .bank import SceneBank
 MIN_GEODESIC = 1.0
 MAX_GEODESIC = 30.0
 RATIO_THRESHOLD = 1.1
-NUM_LANDMARKS = 8  # landmark fields per scene for the sub-goal searches' heuristic
 FILE_VERSION = 1
 
 
@@ -89,40 +88,6 @@ class Geodesics:
             return dist.astype(np.float32)
         out[: h * w] = dist
         return out
-
-    def landmarks(self, scenes) -> np.ndarray:
-        """The bank's landmark table, (cells, NUM_LANDMARKS) float32, with the fields of
-        ``scenes`` filled: distance fields from points spread over each scene's largest
-        component by farthest-point sampling. They only speed up searches (their bounds
-        make A*'s heuristic tighter; the distances found do not depend on them). Computed
-        once per scene (about 9 fields' time) and kept on the bank for all its users."""
-        b = self.bank
-        scenes = np.asarray(scenes, np.int64)
-        if b.landmarks is not None and b.landmarks_done[scenes].all():
-            return b.landmarks  # the common case: every sub-goal search asks
-        if b.landmarks is None:
-            # zeros: the pages of scenes never used are never touched
-            b.landmarks = np.zeros((len(b.nav), NUM_LANDMARKS), np.float32)
-        for s in np.unique(scenes):
-            if b.landmarks_done[s]:
-                continue
-            nav, moves, off, h, w, ox, oy, cs = b.search_args(int(s))
-            comp = b.comp[off: off + h * w]
-            ok = nav[off: off + h * w] != 0
-            largest = np.bincount(comp[ok]).argmax()
-            cell = int(np.flatnonzero(ok & (comp == largest))[0])
-            dist = np.empty(h * w)
-            nearest = None  # distance of every cell to the landmarks chosen so far
-            for j in range(-1, NUM_LANDMARKS):
-                if j >= 0:  # the reachable cell farthest from all landmarks so far
-                    cell = int(np.argmax(np.where(nearest < K.INF, nearest, -1.0)))
-                K.dijkstra_field(nav, moves, off, h, w, ox, oy, cs, ox + (cell % w + 0.5) * cs,
-                                 oy + (cell // w + 0.5) * cs, dist, self.ring, self.label)
-                if j >= 0:
-                    b.landmarks[off: off + h * w, j] = dist
-                nearest = dist.copy() if j <= 0 else np.minimum(nearest, dist)
-            b.landmarks_done[s] = True
-        return b.landmarks
 
     def navigable_cells(self, s: int) -> tuple[np.ndarray, np.ndarray]:
         """Scene ``s``'s navigable cells (flat indices) and their centres (kept per scene)."""

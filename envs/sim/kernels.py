@@ -518,48 +518,26 @@ def field_lookup_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, fields, 
 TIE = 1e-12
 
 
-# Slacks of the heuristic's bounds, in cells. A search starts or ends at a point linked
-# to the centres of the 2x2 block of cells around it, up to sqrt(2) cells away. The
-# octile norm is at most 1.0824 times the euclidean one, so from a cell centre the octile
-# distance to the point overshoots the octile distance to the right centre plus the link
-# by at most 0.0824 * sqrt(2) = 0.117 cells; a field's value at the point (its lookup
-# over the block) is within sqrt(2) cells of its value at any centre of the block.
+# The heuristic's slack, in cells. A search starts or ends at a point linked to the
+# centres of the 2x2 block of cells around it, up to sqrt(2) cells away. The octile norm
+# is at most 1.0824 times the euclidean one, so from a cell centre the octile distance to
+# the point overshoots the octile distance to the right centre plus the link by at most
+# 0.0824 * sqrt(2) = 0.117 cells.
 OCTILE_SLACK = 0.12
-LANDMARK_SLACK = 1.5
 
 
 @njit(cache=True, inline="always")
-def _heuristic(F, v, x, y, ax, ay, fa, LM, la, cs):
-    """A* heuristic from cell ``v`` (centre x, y) to the point (ax, ay): the largest of the
-    octile distance and the landmark bounds |L[v] - L(a)| (ALT, Goldberg & Harrelson
-    2005) of the distance field F (when ``fa`` = F(a) < INF) and of the columns j of
-    ``LM`` (the scene's landmark fields, when ``la[j]`` < INF), each less its slack. The
-    octile distance is the exact cost of an obstacle-free path on the 8-connected grid; a
-    field's values change by at most the step length along any step. Both bounds are
-    therefore consistent, and so is their maximum; the slacks keep them below the true
-    distance at the point."""
+def _heuristic(x, y, ax, ay, cs):
+    """A* heuristic from a cell centre (x, y) to the point (ax, ay): the octile distance,
+    the exact cost of an obstacle-free path on the 8-connected grid (so it is consistent),
+    less the slack that keeps it below the true distance at the point."""
     dx = abs(x - ax)
     dy = abs(y - ay)
-    e = (dx + 0.41421356237309515 * dy if dx > dy else dy + 0.41421356237309515 * dx) - OCTILE_SLACK * cs
-    slack = LANDMARK_SLACK * cs
-    if fa < INF:
-        fv = F[v]
-        if fv < INF:
-            l = abs(fv - fa) - slack
-            if l > e:
-                e = l
-    for j in range(la.shape[0]):
-        if la[j] < INF:
-            lv = LM[v, j]
-            if lv < INF:
-                l = abs(lv - la[j]) - slack
-                if l > e:
-                    e = l
-    return e
+    return (dx + 0.41421356237309515 * dy if dx > dy else dy + 0.41421356237309515 * dx) - OCTILE_SLACK * cs
 
 
 @njit(cache=True, inline="always")
-def _seed(nav, off, h, w, ox, oy, cs, px, py, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, LM, la):
+def _seed(nav, off, h, w, ox, oy, cs, px, py, g, stamp, cur, hk, hv, hpos, size, ax, ay):
     """Open the navigable centres of the 2x2 block around (px, py) with g = their distance
     to it, keyed towards (ax, ay); returns the heap size."""
     r0, c0 = _block(ox, oy, cs, px, py)
@@ -570,13 +548,13 @@ def _seed(nav, off, h, w, ox, oy, cs, px, py, g, stamp, cur, hk, hv, hpos, size,
         stamp[v] = cur
         g[v] = tail
         hpos[v] = -1
-        key = g[v] * (1.0 - TIE) + _heuristic(F, v, cx, cy, ax, ay, fa, LM, la, cs)
+        key = g[v] * (1.0 - TIE) + _heuristic(cx, cy, ax, ay, cs)
         size = _heap_push(hk, hv, hpos, size, key, v)
     return size
 
 
 @njit(cache=True, inline="always")
-def _expand(moves, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, LM, la):
+def _expand(moves, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay):
     """Relax the 8 neighbours of the closed cell ``v`` (no corner cutting); keys are
     g + heuristic towards (ax, ay). ``stamp`` marks which entries of ``g``/``hpos`` belong
     to the search ``cur``, so the scratch never needs clearing. Returns the heap size."""
@@ -599,7 +577,7 @@ def _expand(moves, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, 
             hpos[u] = -1
         if nd < g[u]:
             g[u] = nd
-            fu = nd * (1.0 - TIE) + _heuristic(F, u, ox + (cc + 0.5) * cs, oy + (rr + 0.5) * cs, ax, ay, fa, LM, la, cs)
+            fu = nd * (1.0 - TIE) + _heuristic(ox + (cc + 0.5) * cs, oy + (rr + 0.5) * cs, ax, ay, cs)
             if hpos[u] == -1:
                 size = _heap_push(hk, hv, hpos, size, fu, u)
             elif hpos[u] >= 0:
@@ -615,11 +593,7 @@ def astar(nav, moves, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp
     ``stamp`` marks which entries of ``g`` and ``hpos`` are valid for this call, so the
     scratch never needs clearing. Returns INF when the points are not connected.
     """
-    # octile heuristic only: fa = INF and no landmark columns switch the landmark terms off
-    # (g stands in for the field F)
-    LM = np.empty((0, 0), np.float32)
-    la = np.empty(0)
-    size = _seed(nav, off, h, w, ox, oy, cs, sx, sy, g, stamp, cur_stamp, hk, hv, hpos, 0, gx, gy, g, INF, LM, la)
+    size = _seed(nav, off, h, w, ox, oy, cs, sx, sy, g, stamp, cur_stamp, hk, hv, hpos, 0, gx, gy)
     tr0, tc0 = _block(ox, oy, cs, gx, gy)
     best = INF
     while size > 0:
@@ -634,147 +608,8 @@ def astar(nav, moves, off, h, w, ox, oy, cs, sx, sy, gx, gy, g, stamp, cur_stamp
             t = g[v] + math.sqrt((cx - gx) ** 2 + (cy - gy) ** 2)
             if t < best:
                 best = t
-        size = _expand(moves, off, h, w, ox, oy, cs, v, g, stamp, cur_stamp, hk, hv, hpos, size, gx, gy, g, INF, LM, la)
+        size = _expand(moves, off, h, w, ox, oy, cs, v, g, stamp, cur_stamp, hk, hv, hpos, size, gx, gy)
     return best
-
-
-# Distance to a fixed target from a moving agent: a *resumable reverse A** (Silver 2005).
-# The search runs from the target towards the agent's position (the anchor). A cell's g is
-# exact once it is closed, whatever the later queries are, so a query from the agent's new
-# position re-keys the open cells towards it and resumes the search until the cells
-# around that position are settled. An executor turn costs about one A* instead of one
-# per step.
-# The heuristic (octile distance, the episode's goal field and the scene's landmark fields
-# as ALT landmarks) keeps that one search narrow even when the target lies behind a wall.
-# State per world lives in ``g``, ``stamp``, ``hk``, ``hv``, ``hpos`` (one row per world);
-# ``hpos == -2`` marks a closed cell.
-
-
-@njit(cache=True)
-def landmarks_at(nav, off, h, w, ox, oy, cs, LM, x, y, out):
-    """``out[j]`` = the distance of the point (x, y) in landmark field ``LM[:, j]`` (the
-    scene's rows of the table), as :func:`field_lookup` gives it; INF if unreachable."""
-    for j in range(LM.shape[1]):
-        out[j] = INF
-    r0, c0 = _block(ox, oy, cs, x, y)
-    for k in range(4):
-        v, _, _, tail = _link(nav, off, h, w, ox, oy, cs, r0, c0, k, x, y)
-        if v < 0:
-            continue
-        for j in range(LM.shape[1]):
-            d = LM[v, j]
-            if d < INF and d + tail < out[j]:
-                out[j] = d + tail
-
-
-@njit(cache=True)
-def track_query(nav, moves, off, h, w, ox, oy, cs, g, stamp, cur, hk, hv, hpos, size, ax, ay, px, py, out, wi, F,
-                fa, LM, la):
-    """Geodesic distance from (px, py) to the search's target into ``out[wi]`` (INF if not
-    connected), resuming the search as far as needed; returns the new heap size."""
-    # The navigable cells of the 2x2 block around p, their links to p and heuristics.
-    r0, c0 = _block(ox, oy, cs, px, py)
-    cells = np.empty(4, np.int64)
-    tails = np.empty(4)
-    hs = np.empty(4)
-    m = 0
-    for k in range(4):
-        v, cx, cy, tail = _link(nav, off, h, w, ox, oy, cs, r0, c0, k, px, py)
-        if v < 0:
-            continue
-        cells[m] = v
-        tails[m] = tail
-        hs[m] = _heuristic(F, v, cx, cy, ax, ay, fa, LM, la, cs)
-        m += 1
-    while True:
-        # best over the closed cells around p; a lower bound for the open ones: a cell u
-        # not yet closed has g*(u) >= f_top - h(u) (consistent heuristic)
-        best = INF
-        bound = INF
-        f_top = hk[0] if size > 0 else INF
-        for i in range(m):
-            v = cells[i]
-            if stamp[v] == cur and hpos[v] == -2:
-                t = g[v] + tails[i]
-                if t < best:
-                    best = t
-            elif size > 0:
-                t = f_top - hs[i] + tails[i]
-                if t < bound:
-                    bound = t
-        if bound >= best or size == 0:
-            out[wi] = best
-            return size
-        f, v, size = _heap_pop(hk, hv, hpos, size)
-        size = _expand(moves, off, h, w, ox, oy, cs, v, g, stamp, cur, hk, hv, hpos, size, ax, ay, F, fa, LM, la)
-
-
-@njit(cache=True)
-def _retarget(nav, off, h, w, ox, oy, cs, g, hk, hv, hpos, size, ax, ay, F, LM, la):
-    """Re-key the open cells of a search towards a new point (ax, ay) and restore the heap.
-    The closed cells keep their exact distances and the open ones their best distance
-    through them; that is all A* needs, so the search goes on towards the new point with
-    any consistent heuristic. Returns F's value at (ax, ay); fills ``la`` with the
-    landmarks' values there."""
-    fa = field_lookup(nav, off, h, w, ox, oy, cs, F, ax, ay)
-    landmarks_at(nav, off, h, w, ox, oy, cs, LM, ax, ay, la)
-    for i in range(size):
-        v = hv[i]
-        r = v // w
-        c = v % w
-        hk[i] = g[v] * (1.0 - TIE) + _heuristic(F, v, ox + (c + 0.5) * cs, oy + (r + 0.5) * cs, ax, ay, fa, LM, la, cs)
-    for i in range(size // 2 - 1, -1, -1):  # heapify: sift every inner node down
-        _sift_down(hk, hv, hpos, size, i)
-    return fa
-
-
-@njit(cache=True)
-def _settled(nav, off, h, w, ox, oy, cs, stamp, cur, hpos, px, py):
-    """Whether the search ``cur`` has closed every cell that links the point (px, py)."""
-    r0, c0 = _block(ox, oy, cs, px, py)
-    for k in range(4):
-        v, _, _, _ = _link(nav, off, h, w, ox, oy, cs, r0, c0, k, px, py)
-        if v >= 0 and not (stamp[v] == cur and hpos[v] == -2):
-            return False
-    return True
-
-
-@njit(cache=True, parallel=True)
-def track_batch(nav, moves, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, anchors, rows, init, g,
-                stamp, cur, hk, hv, hpos, size, fields, fa, LM, la, out):
-    """For each world ``r`` in ``rows`` (in parallel): if ``init[k]``, start a new search
-    from ``targets[r]`` towards ``pos[r]`` (bumping ``cur[r]``); otherwise, if the agent
-    has moved, re-key the search towards its new position; then the distance from
-    ``pos[r]`` into ``out[r]``. Every per-world array has one row per world; ``anchors``
-    holds the point each search is keyed towards, ``fields`` the worlds' goal fields and
-    ``fa`` their value at the anchor, ``LM`` the bank's landmark table (cells x landmarks;
-    the scenes of ``rows`` must be filled) and ``la`` its values at the anchor: the
-    landmarks of the heuristic."""
-    for k in prange(rows.shape[0]):
-        r = rows[k]
-        s = scene_idx[r]
-        off, h, w, ox, oy = g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s]
-        LMs = LM[off: off + h * w]
-        if init[k]:
-            cur[r] += 1
-            anchors[r, 0] = pos[r, 0]
-            anchors[r, 1] = pos[r, 1]
-            fa[r] = field_lookup(nav, off, h, w, ox, oy, cs, fields[r], pos[r, 0], pos[r, 1])
-            landmarks_at(nav, off, h, w, ox, oy, cs, LMs, pos[r, 0], pos[r, 1], la[r])
-            size[r] = _seed(nav, off, h, w, ox, oy, cs, targets[r, 0], targets[r, 1], g[r], stamp[r], cur[r], hk[r],
-                            hv[r], hpos[r], 0, pos[r, 0], pos[r, 1], fields[r], fa[r], LMs, la[r])
-        elif (pos[r, 0] != anchors[r, 0] or pos[r, 1] != anchors[r, 1]) and not _settled(
-                nav, off, h, w, ox, oy, cs, stamp[r], cur[r], hpos[r], pos[r, 0], pos[r, 1]):
-            # Keyed towards the old position, the search would grow around the line from
-            # the target to it until it happened to cover the new one. (Where the new
-            # position's cells are closed already, their distances are final: the query
-            # needs no re-keying, whatever the anchor.)
-            anchors[r, 0] = pos[r, 0]
-            anchors[r, 1] = pos[r, 1]
-            fa[r] = _retarget(nav, off, h, w, ox, oy, cs, g[r], hk[r], hv[r], hpos[r], size[r], pos[r, 0], pos[r, 1],
-                              fields[r], LMs, la[r])
-        size[r] = track_query(nav, moves, off, h, w, ox, oy, cs, g[r], stamp[r], cur[r], hk[r], hv[r], hpos[r], size[r],
-                              anchors[r, 0], anchors[r, 1], pos[r, 0], pos[r, 1], out, r, fields[r], fa[r], LMs, la[r])
 
 
 @njit(cache=True)
