@@ -179,6 +179,29 @@ def test_distance_to_equals_reference_dijkstra_among_random_obstacles(seed):
         np.testing.assert_allclose(got[fin], want[fin], rtol=0, atol=1e-9)
 
 
+def test_distance_to_in_a_scene_with_too_many_corners_for_a_table(monkeypatch):
+    """A scene with more corners than ``MAX_TABLE_CORNERS`` (walls at an angle are
+    staircases of corners) gets no table and is answered by A* over the grid: the same
+    distances as the reference."""
+    from plex_ma.envs.sim import BatchedSim, corners
+
+    grid = rasterize(random_obstacle_scene(7))
+    bank = SceneBank([grid])
+    n = int(corners.corner_mask(bank.moves).sum())
+    assert n > 20
+    monkeypatch.setattr(corners, "MAX_TABLE_CORNERS", n - 1)
+    sim = BatchedSim(bank, 8, resolution=8, egomap=False)
+    rng = np.random.default_rng(7)
+    target = random_navigable_point(grid, rng)
+    ref = reference_field(grid, target)
+    for i in range(8):
+        sim.pos[i] = random_navigable_point(grid, rng)
+    got = sim.distance_to(np.repeat(target[None], 8, 0), np.arange(8))
+    assert bank.corners.n_corners[0] == -1 and len(bank.corners.D) == 0
+    want = np.array([reference_lookup(grid, ref, p) for p in sim.pos])
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+
+
 def test_distance_to_in_houses_equals_astar():
     """Sub-goals as the planner sets them (within 4 m, snapped; many behind walls) in
     procedural houses and real floor plans: the distance equals an independent A* from

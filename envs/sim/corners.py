@@ -38,11 +38,17 @@ import sys
 import numpy as np
 from numba import njit, prange
 
-from .kernels import INF, _block, _link
+from .kernels import INF, _block, _link, astar
 
 for _alias in ("plex_ma.envs.sim.corners", "envs.sim.corners"):  # see kernels.py
     sys.modules.setdefault(_alias, sys.modules[__name__])
 del _alias
+
+# A scene with more corners gets no table (8 bytes per pair: 8 MB at this size) and its
+# queries run A* over the grid instead. Walls along the grid axes make few corners (at
+# most about 300 in a procgen house, 160 in a real plan); a wall at an angle is drawn as
+# a staircase with a corner at every step, about 30 per metre.
+MAX_TABLE_CORNERS = 1024
 
 # Straight directions k (clearance columns) and their bits in the move mask.
 UP, DOWN, LEFT, RIGHT = 0, 1, 2, 3
@@ -293,6 +299,12 @@ def distance_batch(nav, moves, corner, clear, D, d_off, n_corners, g_off, g_h, g
         r = rows[k]
         s = scene_idx[r]
         n = n_corners[s]
+        if n < 0:  # too many corners for a table: A* over the grid
+            cells = g_h[s] * g_w[s]
+            out[r] = astar(nav, moves, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, src[r, 0], src[r, 1], dst[r, 0],
+                           dst[r, 1], np.empty(cells), np.zeros(cells, np.int64), 1, np.empty(cells),
+                           np.empty(cells, np.int64), np.empty(cells, np.int64))
+            continue
         out[r] = point_distance(nav, moves, corner, clear, D[d_off[s]: d_off[s] + n * n], n, g_off[s], g_h[s], g_w[s],
                                 g_ox[s], g_oy[s], cs, src[r, 0], src[r, 1], dst[r, 0], dst[r, 1])
 
@@ -300,7 +312,9 @@ def distance_batch(nav, moves, corner, clear, D, d_off, n_corners, g_off, g_h, g
 class CornerGraphs:
     """The corner graphs of a bank's scenes (see the module docstring), each built on its
     scene's first query (about 5 ms for a procedural house): clearances (8 bytes per grid
-    cell) and the corners' distance table (8 bytes per pair of corners)."""
+    cell) and the corners' distance table (8 bytes per pair of corners). A scene with
+    more than ``MAX_TABLE_CORNERS`` corners is answered by A* instead
+    (``n_corners[s] == -1``)."""
 
     def __init__(self, bank):
         if int(max(bank.h.max(), bank.w.max())) >= np.iinfo(np.int16).max:
@@ -324,6 +338,10 @@ class CornerGraphs:
             off, h, w = int(b.off[s]), int(b.h[s]), int(b.w[s])
             cells = np.flatnonzero(corner_mask(b.moves[off: off + h * w]))
             n = len(cells)
+            if n > MAX_TABLE_CORNERS:
+                self.n_corners[s] = -1
+                self.done[s] = True
+                continue
             self.corner[off + cells] = np.arange(1, n + 1)
             table = np.empty(n * n)
             build_scene(b.nav, b.moves, self.corner, self.clear, cells, off, h, w, b.cell_size, table)
