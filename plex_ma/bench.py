@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m plex_ma.bench {sim,env,train,record} [options] [--json]``.
+"""Benchmarks: ``python -m plex_ma.bench {sim,env,geodesic,train,record} [options] [--json]``.
 
 ``train`` times a short training (``--preset``, ``--method``, ``--steps``) end to end and
 reports steps/s, the shares of wall time in simulation, inference and the update, the
@@ -35,6 +35,10 @@ stops with a small probability, so episodes are long):
   ``ratio_all_actions`` counts it anyway). The goal is ``ratio >= 0.7`` at 64 worlds, 128 px.
   ``ratio_cpu`` is the same ratio per second of process CPU time (both threads), which
   a virtual machine's steal time does not inflate.
+
+``geodesic`` times the sub-goal distance queries on one thread (``--queries`` random
+points and sub-goals up to 4 m away, snapped as the env snaps them): the corner graphs the
+env uses against A* on the same queries, with the largest difference between the two.
 
 ``record`` times the cost of the rerun recordings made during training: the same short
 training (``--preset``, ``--updates`` executor updates, fresh run dirs) once without
@@ -121,6 +125,53 @@ def bench_sim(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
             "machine": machine()}
 
 
+def bench_geodesic(queries: int, seed: int, scenes: str = "procgen", num_scenes: int | None = None,
+                   rho_max: float = 4.0, astar_queries: int = 500) -> dict:
+    """Sub-goal distance queries on one thread: the corner graphs (``BatchedSim.distance_to``,
+    what the env asks after every executor move) against A* (``Geodesics.distance``) on the
+    same queries. Each query goes from a random navigable point of a random scene to a
+    point up to ``rho_max`` away in a random direction, snapped as the env snaps sub-goals."""
+    import numba
+
+    from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
+
+    bank = scene_bank(scenes, "train", num_scenes)
+    sim = BatchedSim(bank, queries, resolution=8, egomap=False)
+    geo = Geodesics(bank)
+    rng = np.random.default_rng(seed)
+    sim.scene_idx[:] = rng.integers(len(bank), size=queries)
+    for i, s in enumerate(sim.scene_idx):
+        cells, centres = geo.navigable_cells(int(s))
+        sim.pos[i] = centres[rng.integers(len(cells))] + rng.uniform(-0.02, 0.02, 2)
+    ang = rng.uniform(-np.pi, np.pi, queries)
+    raw = sim.pos + rng.uniform(0, rho_max, (queries, 1)) * np.stack([np.cos(ang), np.sin(ang)], 1)
+    rows = np.arange(queries)
+    targets = sim.snap_to_navigable(raw, rows)
+    t0 = time.perf_counter()
+    sim.prepare_geodesics(np.unique(sim.scene_idx))
+    build = time.perf_counter() - t0
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        best = np.inf
+        for _ in range(3):
+            t0 = time.perf_counter()
+            d = sim.distance_to(targets, rows)
+            best = min(best, time.perf_counter() - t0)
+    finally:
+        numba.set_num_threads(threads)
+    k = min(astar_queries, queries)
+    t0 = time.perf_counter()
+    ref = np.array([geo.distance(int(sim.scene_idx[i]), sim.pos[i], targets[i]) for i in range(k)])
+    t_astar = time.perf_counter() - t0
+    euclid = np.hypot(*(sim.pos - targets).T)
+    return {"benchmark": "geodesic", "queries": queries, "corner_graph_us_per_query": best / queries * 1e6,
+            "astar_us_per_query": t_astar / k * 1e6, "astar_queries": k,
+            "max_abs_difference_m": float(np.max(np.abs(d[:k] - ref))),
+            "detour_fraction": float(np.mean(d > 1.3 * euclid + 0.1)), "scenes": len(np.unique(sim.scene_idx)),
+            "graph_build_seconds": build, "machine": machine()}
+
+
 def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str = "procgen",
               aec_turns: int = 2000, planner_stop_prob: float = 0.01, executor_stop_prob: float = 0.1,
               num_scenes: int | None = None, rounds: int = 10, warmup: int = 20) -> dict:
@@ -190,7 +241,7 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
     # poses: the cost of rendering depends on them) and resets at its long-run rate.
     raw = _RawSim(num_envs, resolution, seed, scenes, num_scenes, episodes=list(venv.worlds.sim.episodes), steady=True)
     # A long run has met every house: its corner graph (built on a house's first sub-goal,
-    # ~5 ms each) is in place. Without this, a short bench would time that one-off cost
+    # ~4 ms each) is in place. Without this, a short bench would time that one-off cost
     # whenever an episode starts in a house not seen yet.
     venv.worlds.sim.prepare_geodesics()
     run_vec(vec_actions(warmup))
@@ -312,6 +363,13 @@ def main(argv: list[str] | None = None) -> None:
     pe.add_argument("--aec-turns", type=int, default=2000, help="AEC turns to time")
     pe.add_argument("--planner-stop-prob", type=float, default=0.01, help="chance that a planner action is STOP")
     pe.add_argument("--executor-stop-prob", type=float, default=0.1, help="chance that an executor action is STOP")
+    pg = sub.add_parser("geodesic", help="sub-goal distance queries: corner graphs against A*, one thread")
+    pg.add_argument("--queries", type=int, default=4000, help="queries to time")
+    pg.add_argument("--astar-queries", type=int, default=500, help="of those, how many A* answers too")
+    pg.add_argument("--seed", type=int, default=0)
+    pg.add_argument("--scenes", default="procgen", help="scene source")
+    pg.add_argument("--num-scenes", type=int, default=None, help="training scenes (default: the source's)")
+    pg.add_argument("--json", action="store_true", help="print one JSON object")
     pr = sub.add_parser("record", help="training time with and without rerun recordings (the overhead)")
     pr.add_argument("--preset", default="cpu", help="training preset")
     pr.add_argument("--method", default="plex-gru", help="training method")
@@ -348,6 +406,8 @@ def main(argv: list[str] | None = None) -> None:
         out["machine"] = machine()
     elif a.what == "sim":
         out = bench_sim(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, a.num_scenes)
+    elif a.what == "geodesic":
+        out = bench_geodesic(a.queries, a.seed, a.scenes, a.num_scenes, astar_queries=a.astar_queries)
     elif a.what == "record":
         out = bench_record(a.preset, a.updates, a.record_interval, a.default_interval, a.seed, a.method)
     else:

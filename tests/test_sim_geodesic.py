@@ -290,3 +290,16 @@ def test_move_mask_allows_exactly_the_grid_steps_of_the_search_graph():
                 want = (nav[r, c] and 0 <= rr < H and 0 <= cc < W and nav[rr, cc]
                         and (dr == 0 or dc == 0 or (nav[r, cc] and nav[rr, c])))
                 assert bool(m[r, c] >> j & 1) == want, (r, c, dr, dc)
+
+
+def test_bench_geodesic_runs(capsys):
+    """``python -m plex_ma.bench geodesic``: the corner graphs and A* agree on its queries."""
+    import json
+
+    from plex_ma.bench import main
+
+    main(["geodesic", "--queries", "60", "--astar-queries", "30", "--num-scenes", "3", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert out["queries"] == 60 and out["astar_queries"] == 30 and out["scenes"] == 3
+    assert out["max_abs_difference_m"] < 1e-9
+    assert out["corner_graph_us_per_query"] > 0 and out["astar_us_per_query"] > 0

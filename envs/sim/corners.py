@@ -311,7 +311,7 @@ def distance_batch(nav, moves, corner, clear, D, d_off, n_corners, g_off, g_h, g
 
 class CornerGraphs:
     """The corner graphs of a bank's scenes (see the module docstring), each built on its
-    scene's first query (about 5 ms for a procedural house): clearances (8 bytes per grid
+    scene's first query (about 4 ms for a procedural house): clearances (8 bytes per grid
     cell) and the corners' distance table (8 bytes per pair of corners). A scene with
     more than ``MAX_TABLE_CORNERS`` corners is answered by A* instead
     (``n_corners[s] == -1``)."""
