@@ -334,21 +334,25 @@ class CornerGraphs:
         if self.done[scenes].all():
             return  # the common case: every query asks
         b = self.bank
-        for s in np.unique(scenes[~self.done[scenes]]):
+        todo = np.unique(scenes[~self.done[scenes]])
+        tables = [self.D]
+        size = len(self.D)
+        for s in todo:
             off, h, w = int(b.off[s]), int(b.h[s]), int(b.w[s])
             cells = np.flatnonzero(corner_mask(b.moves[off: off + h * w]))
             n = len(cells)
             if n > MAX_TABLE_CORNERS:
                 self.n_corners[s] = -1
-                self.done[s] = True
                 continue
             self.corner[off + cells] = np.arange(1, n + 1)
             table = np.empty(n * n)
             build_scene(b.nav, b.moves, self.corner, self.clear, cells, off, h, w, b.cell_size, table)
-            self.d_off[s] = len(self.D)
+            self.d_off[s] = size
             self.n_corners[s] = n
-            self.D = np.concatenate([self.D, table])
-            self.done[s] = True
+            size += n * n
+            tables.append(table)
+        self.D = np.concatenate(tables)  # once: a bank may have hundreds of scenes
+        self.done[todo] = True
 
     def distances(self, scene_idx: np.ndarray, src: np.ndarray, dst: np.ndarray, rows: np.ndarray,
                   out: np.ndarray) -> None:
