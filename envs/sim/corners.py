@@ -38,7 +38,7 @@ import sys
 import numpy as np
 from numba import njit, prange
 
-from .kernels import INF, _block, _link, astar
+from .kernels import INF, MOVE_DC, MOVE_DR, _block, _link, astar
 
 for _alias in ("plex_ma.envs.sim.corners", "envs.sim.corners"):  # see kernels.py
     sys.modules.setdefault(_alias, sys.modules[__name__])
@@ -50,33 +50,30 @@ del _alias
 # a staircase with a corner at every step, about 30 per metre.
 MAX_TABLE_CORNERS = 1024
 
-# Straight directions k (clearance columns) and their bits in the move mask.
+# Straight directions k (clearance columns).
 UP, DOWN, LEFT, RIGHT = 0, 1, 2, 3
 _STRAIGHT_DR = np.array([-1, 1, 0, 0], np.int64)
 _STRAIGHT_DC = np.array([0, 0, -1, 1], np.int64)
+# The move mask's bit of each step (dr, dc), at [dr + 1, dc + 1] (kernels.MOVE_DR/DC).
+_BIT = np.full((3, 3), -1, np.int64)
+_BIT[MOVE_DR + 1, MOVE_DC + 1] = np.arange(8)
 # Diagonal steps: (dr, dc), their move bit, and the straight directions they are made of.
 _DIAG_DR = np.array([-1, -1, 1, 1], np.int64)
 _DIAG_DC = np.array([-1, 1, -1, 1], np.int64)
-_DIAG_BIT = np.array([0, 2, 5, 7], np.int64)
-_DIAG_VERT = np.array([UP, UP, DOWN, DOWN], np.int64)
-_DIAG_HORZ = np.array([LEFT, RIGHT, LEFT, RIGHT], np.int64)
+_DIAG_BIT = _BIT[_DIAG_DR + 1, _DIAG_DC + 1]
+_DIAG_VERT = np.where(_DIAG_DR < 0, UP, DOWN)
+_DIAG_HORZ = np.where(_DIAG_DC < 0, LEFT, RIGHT)
 
 
 def corner_mask(moves: np.ndarray) -> np.ndarray:
     """Which cells are corners, from the move mask (any shape): for some diagonal step,
     both its straight steps are allowed and the step itself is not."""
     m = moves.astype(np.uint16)
-    bit = lambda j: (m >> j) & 1  # noqa: E731
     corner = np.zeros(moves.shape, np.bool_)
-    for j, a, b in ((0, 1, 3), (2, 1, 4), (5, 6, 3), (7, 6, 4)):  # diagonal, its two straight steps
-        corner |= (bit(a) & bit(b) & (1 - bit(j))).astype(np.bool_)
+    for dr, dc in zip(_DIAG_DR, _DIAG_DC):
+        vert, horz, diag = ((m >> _BIT[i + 1, j + 1]) & 1 for i, j in ((dr, 0), (0, dc), (dr, dc)))
+        corner |= (vert & horz & (1 - diag)).astype(np.bool_)
     return corner
-
-
-@njit(cache=True, inline="always")
-def _move_bit(dr, dc):
-    i = (dr + 1) * 3 + (dc + 1)
-    return i if i < 4 else i - 1
 
 
 @njit(cache=True)
@@ -205,15 +202,15 @@ def _diagonal_first_free(moves, off, w, v, u):
     sr = (dr > 0) - (dr < 0)
     sc = (dc > 0) - (dc < 0)
     nd = min(abs(dr), abs(dc))
-    bit = _move_bit(sr, sc)
+    bit = _BIT[sr + 1, sc + 1]
     for _ in range(nd):
         if (moves[off + v] >> bit) & 1 == 0:
             return False
         v += sr * w + sc
     if abs(dr) > abs(dc):
-        ns, bit, step = abs(dr) - nd, _move_bit(sr, 0), sr * w
+        ns, bit, step = abs(dr) - nd, _BIT[sr + 1, 1], sr * w
     else:
-        ns, bit, step = abs(dc) - nd, _move_bit(0, sc), sc
+        ns, bit, step = abs(dc) - nd, _BIT[1, sc + 1], sc
     for _ in range(ns):
         if (moves[off + v] >> bit) & 1 == 0:
             return False
