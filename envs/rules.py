@@ -96,6 +96,7 @@ class PlexConfig(NavConfig):
     eli: bool = True  # pass the ELI to the planner (False: the ablation, zeros)
     subgoal_reward: float = 1.0  # executor bonus for STOP within subgoal_radius
     subgoal_radius: float = 0.5  # metres
+    executor_stop_penalty: float = 0.0  # added to the executor's reward for a STOP farther than subgoal_radius
     executor_memory_restart: bool = True  # hint to trainers: reset executor memory per sub-goal
     eli_dim: int = field(default=ELI_DIM, init=False)
 
@@ -109,6 +110,8 @@ class PlexConfig(NavConfig):
             raise ValueError(f"config eli={self.eli!r}: must be True or False")
         if not (isinstance(self.subgoal_radius, (int, float)) and 0 < self.subgoal_radius < 5):
             raise ValueError(f"config subgoal_radius={self.subgoal_radius!r}: must be in (0, 5) metres")
+        if not (isinstance(self.executor_stop_penalty, (int, float)) and -100 <= self.executor_stop_penalty <= 0):
+            raise ValueError(f"config executor_stop_penalty={self.executor_stop_penalty!r}: must be in [-100, 0]")
 
 
 def make_config(cls, kwargs: dict):
@@ -422,6 +425,7 @@ class PlexWorlds(_Worlds):
         # within the radius would pay the bonus for a STOP on the spot.
         reached = stopped & (d_sub < cfg.subgoal_radius) & (self.subgoal_dist0[rows] >= cfg.subgoal_radius)
         ex_r += cfg.subgoal_reward * reached
+        ex_r += cfg.executor_stop_penalty * (stopped & (d_sub >= cfg.subgoal_radius))
         pl_r = progress_reward(d_goal_prev, sim.distance_to_goal[rows], collided, cfg)
         out.rewards[rows, EXECUTOR] += ex_r.astype(np.float32)
         out.rewards[rows, PLANNER] += pl_r.astype(np.float32)

@@ -24,10 +24,16 @@ class TrainConfig:
     """pass the executor's ELI to the planner (--no-eli: the paper's ablation)"""
     planner_goal_prior: bool = False
     """PLEX only: start the planner goal-directed (sub-goal head residual on the goal vector, stop head initialised to fire near the goal); off by default: it learnt worse than the paper's plain heads in our measurements (README)"""
+    planner_heads: Literal["mlp", "linear"] = "mlp"
+    """PLEX only: the planner's heads: mlp (the goal also enters the trunk, an MLP per head, direction relative to the goal's) or linear (linear heads on the 512 features + goal, the paper's text read literally)"""
     planner_stop_within: float | None = None
     """PLEX only: the planner may stop only while its goal vector reads closer than this (m); None: anywhere (the paper)"""
-    planner: Literal["learn", "random"] = "learn"
-    """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping)"""
+    planner: Literal["learn", "random", "oracle"] = "learn"
+    """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping) or under the shortest-path oracle planner (ground truth)"""
+    executor: Literal["learn", "oracle"] = "learn"
+    """PLEX only: learn the executor, or train the planner alone over the shortest-path oracle executor (ground truth)"""
+    warmup_planner: Literal["random", "oracle"] = "random"
+    """PLEX only: the planner that stands in during --planner-warmup-steps (oracle: ground-truth sub-goals along the shortest path)"""
     random_subgoal_distance: float = 2.0
     """largest distance (m) of the random planner's sub-goals (at most rho_max)"""
     random_subgoal_angle: float = 1.0
@@ -90,6 +96,12 @@ class TrainConfig:
     """largest sub-goal distance (m)"""
     subgoal_radius: float = 0.5
     """PLEX only: the executor's STOP earns its +1 within this distance (m) of the sub-goal (the env's subgoal_radius)"""
+    executor_stop_penalty: float = 0.0
+    """PLEX only: added to the executor's reward when it chooses STOP farther than subgoal_radius from its sub-goal (the env's executor_stop_penalty)"""
+    planner_minibatches: int = 2
+    """PLEX only: minibatches per epoch of the planner's PPO update"""
+    executor_goal_skip: bool = True
+    """the executor's (and flat policy's) heads also read the encoded goal vector beside the memory's output (--no-executor-goal-skip: heads on the 128-d output alone)"""
     executor_hidden: int = 512
     """GRU hidden size of the executor and the flat GRU policy (512 in the paper)"""
     smt_memory: int = 128
@@ -162,7 +174,12 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.keep_checkpoints >= 1, "keep_checkpoints", "must be >= 1")
     need(cfg.smt_memory >= 1, "smt_memory", "must be >= 1")
     need(cfg.record_interval >= 0, "record_interval", "must be >= 0")
-    need(cfg.planner in ("learn", "random"), "planner", "must be 'learn' or 'random'")
+    need(cfg.planner in ("learn", "random", "oracle"), "planner", "must be 'learn', 'random' or 'oracle'")
+    need(cfg.executor in ("learn", "oracle"), "executor", "must be 'learn' or 'oracle'")
+    need(not (cfg.planner != "learn" and cfg.executor == "oracle"), "executor",
+         "with --executor oracle the planner must learn (nothing would be trained)")
+    need(cfg.planner_minibatches >= 1, "planner_minibatches", "must be >= 1")
+    need(cfg.executor_stop_penalty <= 0, "executor_stop_penalty", "must be <= 0")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
     need(0 < cfg.subgoal_radius < 5, "subgoal_radius", "must be in (0, 5) metres")

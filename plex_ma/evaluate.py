@@ -26,6 +26,7 @@ from plex_ma.envs.rules import CLOSE_FAR_SPLIT, PLANNER
 from plex_ma.envs.sim import generate_episodes, load_episodes
 from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
 from plex_ma.trainers.checkpoint import CheckpointError, load_checkpoint
+from plex_ma.trainers.driver import PlexDriver, make_executor, make_planner
 from plex_ma.trainers.plex import build_policies, env_kwargs, saved_config
 
 METRICS = ("success", "spl", "reward", "distance_to_goal", "collisions")
@@ -58,86 +59,74 @@ def episode_set(env, split: str, n: int, seed: int):
 
 @torch.no_grad()
 def run_episodes(cfg: TrainConfig, nets: dict, split: str = "test", episodes: int = 100, scenes: str | None = None,
-                 num_envs: int = 8, episodes_file: str | None = None, recorder=None) -> list[dict]:
-    """Run each episode once, greedily; returns one result dict per episode (by episode_id)."""
+                 num_envs: int = 8, episodes_file: str | None = None, recorder=None, sample: bool = False,
+                 planner: str = "learned", executor: str = "learned", seed: int = 0) -> list[dict]:
+    """Run each episode once; returns one result dict per episode (by episode_id).
+
+    Actions are greedy, or sampled with ``sample`` (seeded by ``seed``). For PLEX,
+    ``planner`` and ``executor`` pick each agent's policy: 'learned' (the network in
+    ``nets``), 'oracle' (shortest-path, ground truth) or 'random'."""
     scenes = scenes or cfg.scenes
     kw = env_kwargs(dataclasses.replace(cfg, scenes=scenes), split)
     if episodes_file:
         kw["episodes_file"] = episodes_file
     plex = cfg.method.startswith("plex")
-    if plex:
-        env = PlexVectorEnv(num_envs, seed=0, n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, **kw)
-    else:
-        env = PointNavVectorEnv(num_envs, seed=0, **kw)
+    env = PlexVectorEnv(num_envs, seed=0, **kw) if plex else PointNavVectorEnv(num_envs, seed=0, **kw)
     eps = episode_set(env, split, episodes, seed=12345)
     wanted = {e.episode_id for e in eps}
     if len(wanted) != len(eps):  # generated sets number their episodes 0..n-1; files must too
         raise ValueError("episode ids in the evaluation set are not unique")
     # Worlds take the set's episodes in order as they free up; once the set is exhausted
-    # they cycle through it again and those repeats (identical, as all is greedy) are ignored.
+    # they cycle through it again and those repeats are ignored.
     env.worlds.fixed_episodes = eps
     results: dict[int, dict] = {}
-    ret = np.zeros(num_envs)
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+
+    def finish(infos, returns):
+        for info, ret in zip(infos, returns):
+            if info["episode_id"] in wanted and info["episode_id"] not in results:
+                keep = ("success", "spl", "distance_to_goal", "collisions", "geodesic_distance", "scene_id",
+                        "episode_id", "steps")
+                results[info["episode_id"]] = {**{m: info[m] for m in keep}, "reward": float(ret)}
+
+    if recorder is not None:
+        recorder.begin(env)
     if plex:
-        planner, executor = nets["planner"], nets["executor"]
-        turn, pl_obs, ex_obs = env.reset()
-        state = executor.initial_state(num_envs)
-        starts = np.ones(num_envs, np.bool_)
+        drv = PlexDriver(env, make_planner(planner, env, nets.get("planner"), not sample, rng),
+                         make_executor(executor, env, nets.get("executor"), not sample, rng))
+        drv.reset()
+        done = lambda: len(results) == len(eps)  # noqa: E731  (a planner that always stops never leaves decide)
+
+        def on_decision(d):
+            if recorder is not None:
+                recorder.step(env, d.result, rows=d.rows)
+            finish(d.result.episode_infos, drv.episode_returns)
+
+        while not done():
+            drv.decide(on_decision, until=done)
+            if done():
+                break
+            s = drv.step()
+            if recorder is not None:
+                recorder.step(env, s.result, eli=s.out["eli"])
+            finish(s.result.episode_infos, drv.episode_returns)
     else:
         policy = nets["policy"]
         obs = env.reset()
         state = policy.initial_state(num_envs)
         starts = np.ones(num_envs, np.bool_)
-    if recorder is not None:
-        recorder.begin(env)
-
-    def finish(res_infos, ended):
-        for k, i in enumerate(ended):
-            info = res_infos[k]
-            if info["episode_id"] in wanted and info["episode_id"] not in results:
-                keep = ("success", "spl", "distance_to_goal", "collisions", "geodesic_distance", "scene_id",
-                        "episode_id", "steps")
-                results[info["episode_id"]] = {**{m: info[m] for m in keep}, "reward": float(ret[i])}
-            ret[i] = 0.0
-
-    while len(results) < len(eps):
-        if plex:
-            while np.any(turn == PLANNER):
-                rows = np.flatnonzero(turn == PLANNER)
-                out = planner.act({k: v[rows] for k, v in pl_obs.items()}, deterministic=True)
-                stop = np.zeros(num_envs, np.int64)
-                sub = np.zeros((num_envs, 2), np.float32)
-                stop[rows] = out["stop"].numpy()
-                sub[rows] = out["subgoal_env"].numpy()
-                res = env.step(stop=stop, subgoal=sub)
-                ret += res.rewards[:, 0]
-                if recorder is not None:
-                    recorder.step(env, res, rows=rows)
-                finish(res.episode_infos, np.flatnonzero(res.terminated | res.truncated))
-                turn, pl_obs, ex_obs = res.turn, res.planner_obs, res.executor_obs
-                starts[rows] = True
-                if len(results) == len(eps):  # a planner that always stops never leaves this loop
-                    break
-            if len(results) == len(eps):
-                break
-            out, state = executor.act(ex_obs, state, starts, deterministic=True)
-            res = env.step(action=out["action"].numpy(), eli=out["eli"].numpy())
-            ret += res.rewards[:, 0]
-            if recorder is not None:
-                recorder.step(env, res, eli=out["eli"].numpy())
-            ended = res.terminated | res.truncated
-            finish(res.episode_infos, np.flatnonzero(ended))
-            starts = (res.executor_turn_end & env.executor_memory_restart) | ended
-            turn, pl_obs, ex_obs = res.turn, res.planner_obs, res.executor_obs
-        else:
-            out, state = policy.act(obs, state, starts, deterministic=True)
+        ret = np.zeros(num_envs)
+        while len(results) < len(eps):
+            out, state = policy.act(obs, state, starts, deterministic=not sample)
             obs, rew, term, trunc, infos = env.step(out["action"].numpy())
             if recorder is not None:
                 recorder.step(env, (obs, rew, term, trunc, infos))
             ret += rew
-            ended = term | trunc
-            finish(infos, np.flatnonzero(ended))
-            starts = ended
+            ended = np.flatnonzero(term | trunc)
+            finish(infos, ret[ended])
+            ret[ended] = 0.0
+            starts = term | trunc
     if recorder is not None:
         recorder.end()
     return [results[e.episode_id] for e in eps]
@@ -167,7 +156,15 @@ def format_table(summary: dict, title: str = "") -> str:
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(prog="python -m plex_ma.evaluate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", required=True, help="checkpoint file (e.g. runs/x/latest.pt)")
+    p.add_argument("--checkpoint", default=None,
+                   help="checkpoint file (e.g. runs/x/latest.pt, or pretrained:plex-gru); not needed when both "
+                        "PLEX agents are stand-ins")
+    p.add_argument("--planner", choices=["learned", "oracle", "random"], default="learned",
+                   help="PLEX planner: the checkpoint's, the shortest-path oracle (ground truth) or random")
+    p.add_argument("--executor", choices=["learned", "oracle", "random"], default="learned",
+                   help="PLEX executor: the checkpoint's, the shortest-path oracle (ground truth) or random")
+    p.add_argument("--sample", action="store_true", help="sample the learned agents' actions (seeded) instead of greedy")
+    p.add_argument("--seed", type=int, default=0, help="seeds --sample and the random stand-ins")
     p.add_argument("--split", choices=["val", "test"], default="test", help="episode set")
     p.add_argument("--episodes", type=int, default=1000, help="how many of the set's episodes to run")
     p.add_argument("--scenes", default=None, help="scene source (default: the one trained on)")
@@ -182,11 +179,16 @@ def main(argv: list[str] | None = None) -> dict:
         torch.set_num_threads(a.torch_threads)
     if a.episodes < 1:
         p.error("--episodes must be >= 1")
+    needs_nets = a.checkpoint is not None or "learned" in (a.planner, a.executor)
+    if a.checkpoint is None and needs_nets:
+        p.error("--checkpoint is needed unless both --planner and --executor are oracle or random")
     try:
-        cfg, nets = load_policies(a.checkpoint)
+        cfg, nets = load_policies(a.checkpoint) if a.checkpoint else (TrainConfig(), {})
     except CheckpointError as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2)
+    if not cfg.method.startswith("plex") and (a.planner, a.executor) != ("learned", "learned"):
+        p.error(f"--planner/--executor apply to PLEX; the checkpoint is {cfg.method}")
     if a.episodes_file:
         load_episodes(a.episodes_file)  # fail early with a clear message
     recorder = None
@@ -194,15 +196,30 @@ def main(argv: list[str] | None = None) -> dict:
         from plex_ma.viz.record import EpisodeRecorder
 
         recorder = EpisodeRecorder(a.record)
-    results = run_episodes(cfg, nets, a.split, a.episodes, a.scenes, a.num_envs, a.episodes_file, recorder)
+    results = run_episodes(cfg, nets, a.split, a.episodes, a.scenes, a.num_envs, a.episodes_file, recorder,
+                           sample=a.sample, planner=a.planner, executor=a.executor, seed=a.seed)
     summary = summarize(results)
-    print(format_table(summary, f"{cfg.method} on {a.scenes or cfg.scenes}/{a.split} ({a.checkpoint})"))
+    agents = agents_label(cfg, a.planner, a.executor)
+    mode = "sampled" if a.sample else "greedy"
+    print(format_table(summary, f"{agents} on {a.scenes or cfg.scenes}/{a.split}, {mode} "
+                                f"({a.checkpoint or 'no checkpoint'})"))
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps({**summary, "method": cfg.method, "checkpoint": str(a.checkpoint),
+        Path(a.json).write_text(json.dumps({**summary, "method": cfg.method, "agents": agents,
+                                            "planner": a.planner, "executor": a.executor,
+                                            "ground_truth": "oracle" in (a.planner, a.executor), "mode": mode,
+                                            "seed": a.seed, "checkpoint": str(a.checkpoint),
                                             "split": a.split, "scenes": a.scenes or cfg.scenes,
                                             "per_episode": results}, indent=1))
     return summary
+
+
+def agents_label(cfg: TrainConfig, planner: str, executor: str) -> str:
+    """e.g. 'plex-gru', or 'plex-gru: planner oracle (ground truth), executor learned'."""
+    if not cfg.method.startswith("plex") or (planner, executor) == ("learned", "learned"):
+        return cfg.method
+    gt = lambda k: " (ground truth)" if k == "oracle" else ""  # noqa: E731
+    return f"{cfg.method}: planner {planner}{gt(planner)}, executor {executor}{gt(executor)}"
 
 
 if __name__ == "__main__":

@@ -49,6 +49,17 @@ def encode_polar(vec: torch.Tensor) -> torch.Tensor:
     return torch.stack([vec[..., 0], torch.cos(vec[..., 1]), torch.sin(vec[..., 1])], dim=-1)
 
 
+GOAL_FEATURES = 5
+
+
+def planner_goal_features(goal: torch.Tensor) -> torch.Tensor:
+    """(B, 2) goal (distance m, direction rad) -> (B, 5): distance / 10, cos, sin, and
+    exp(-distance / 0.5) and min(distance, 2) for a fine reading near the goal (where
+    the planner decides to stop)."""
+    d, th = goal[..., 0], goal[..., 1]
+    return torch.stack([d / 10, torch.cos(th), torch.sin(th), torch.exp(-d / 0.5), d.clamp(max=2.0)], dim=-1)
+
+
 def _as_tensor(x, device: torch.device, dtype: torch.dtype | None = None) -> torch.Tensor:
     if isinstance(x, np.ndarray):
         x = torch.from_numpy(x)
@@ -89,62 +100,102 @@ class Planner(nn.Module):
 
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
-                 map_size: int = 32, init_log_std: float = 0.0, init_stop_prob: float = 0.02,
+                 map_size: int = 32, init_log_std: float | None = None, init_stop_prob: float = 0.02,
                  goal_prior: bool = False, prior_distance: float = 1.5, prior_angle: float = 0.5,
-                 stop_within: float | None = None):
+                 stop_within: float | None = None, heads: str = "mlp", head_hidden: int = 256):
         super().__init__()
+        if heads not in ("linear", "mlp"):
+            raise ValueError(f"heads must be 'linear' or 'mlp', got {heads!r}")
         self.eli_dim, self.use_eli, self.rho_max, self.goal_prior = eli_dim, use_eli, rho_max, goal_prior
         self.prior_distance, self.prior_angle = min(prior_distance, rho_max), prior_angle
-        self.stop_within = stop_within
+        self.stop_within, self.heads = stop_within, heads
         self.convs = nn.Sequential(
             layer_init(nn.Conv2d(ego_channels, channels[0], 4, stride=2)), nn.ReLU(),
             layer_init(nn.Conv2d(channels[0], channels[1], 3, stride=1)), nn.ReLU(),
             nn.Flatten(),
         )
         n_flat = _conv_out_dim(self.convs, (ego_channels, map_size, map_size))
-        self.fc = nn.Sequential(layer_init(nn.Linear(n_flat + eli_dim, hidden)), nn.ReLU())
-        feat = hidden + 3  # + encoded goal (distance, cos, sin)
-        self.stop_logits = layer_init(nn.Linear(feat, 2), std=0.01)
-        self.subgoal_mean = layer_init(nn.Linear(feat, 2), std=0.01)
+        goal_dim = 3 if heads == "linear" else GOAL_FEATURES
+        trunk_in = n_flat + eli_dim + (goal_dim if heads == "mlp" else 0)
+        self.fc = nn.Sequential(layer_init(nn.Linear(trunk_in, hidden)), nn.ReLU())
+        feat = hidden + goal_dim  # + encoded goal
+        if heads == "mlp":
+            # The goal enters the trunk too, and each head is a small MLP over (trunk, goal),
+            # so that map and goal interact and the sub-goal can follow the goal's direction.
+            def mlp(out, std):
+                return nn.Sequential(layer_init(nn.Linear(feat, head_hidden)), nn.ReLU(),
+                                     layer_init(nn.Linear(head_hidden, out), std=std))
+            self.stop_logits, self.subgoal_mean, self.critic = mlp(2, 0.01), mlp(2, 0.01), mlp(1, 1.0)
+            # A linear skip from the goal features to the stop logits, started so that the
+            # planner tends to stop near the goal: p(stop) ~0.5 at 0.1 m, ~0.12 at 0.2 m,
+            # < 2% beyond 0.3 m (the feature min(d, 2) has index 4).
+            self.stop_skip = nn.Linear(goal_dim, 2)
+        else:
+            self.stop_logits = layer_init(nn.Linear(feat, 2), std=0.01)
+            self.subgoal_mean = layer_init(nn.Linear(feat, 2), std=0.01)
+            self.critic = layer_init(nn.Linear(feat, 1), std=1.0)
+        stop_out = self.stop_logits if heads == "linear" else self.stop_logits[-1]
+        mean_out = self.subgoal_mean if heads == "linear" else self.subgoal_mean[-1]
         # Start with sub-goals half-way out (rho ~ rho_max / 2) rather than at the agent.
         with torch.no_grad():
-            self.subgoal_mean.bias[0] = rho_max / 2
+            mean_out.bias[0] = rho_max / 2
             # An untrained planner that stops half the time ends most episodes after one or
             # two decisions, before the executor has acted; start with rare stops instead.
-            self.stop_logits.bias[1] = math.log(init_stop_prob / (1 - init_stop_prob))
+            stop_out.bias[1] = math.log(init_stop_prob / (1 - init_stop_prob))
+            if heads == "mlp":
+                mean_out.bias[0] = 0.0  # rho is relative to min(goal distance, prior_distance)
+                stop_out.bias.zero_()
+                self.stop_skip.weight.zero_()
+                self.stop_skip.bias.zero_()
+                self.stop_skip.weight[1, 4] = -20.0
+                self.stop_skip.bias[1] = 2.0
             if goal_prior:
-                self.subgoal_mean.bias[0] = 0.0  # the prior already puts rho at min(d, prior_distance)
+                if heads != "linear":
+                    raise ValueError("goal_prior is defined for the linear heads")
+                mean_out.bias[0] = 0.0  # the prior already puts rho at min(d, prior_distance)
                 # stop logit - continue logit ~ 2 - 20 * goal distance (feature `hidden` is the distance)
-                self.stop_logits.weight[1, hidden] = -20.0
-                self.stop_logits.bias[1] = 2.0
+                stop_out.weight[1, hidden] = -20.0
+                stop_out.bias[1] = 2.0
+        if init_log_std is None:  # std 1 (m, rad) for the plain heads; 0.5 around the goal-relative mean
+            init_log_std = 0.0 if heads == "linear" else math.log(0.5)
         self.subgoal_log_std = nn.Parameter(torch.full((2,), float(init_log_std)))
-        self.critic = layer_init(nn.Linear(feat, 1), std=1.0)
+
+    def _goal(self, goal: torch.Tensor) -> torch.Tensor:
+        return encode_polar(goal) if self.heads == "linear" else planner_goal_features(goal)
 
     def features(self, obs: dict) -> torch.Tensor:
-        dev = self.stop_logits.weight.device
+        dev = self.convs[0].weight.device
         ego = _as_tensor(obs["ego_map"], dev, torch.float32)
-        goal = _as_tensor(obs["goal"], dev, torch.float32)
+        goal = self._goal(_as_tensor(obs["goal"], dev, torch.float32))
         if self.use_eli:
             # Stop-gradient (paper 3, SPEC 5): the planner's loss must never reach the
             # executor's parameters, so the ELI always enters the planner detached.
             eli = _as_tensor(obs["eli"], dev, torch.float32).detach()
         else:
             eli = torch.zeros(ego.shape[0], self.eli_dim, device=dev)
-        h = self.fc(torch.cat([self.convs(ego), eli], dim=1))
-        return torch.cat([h, encode_polar(goal)], dim=1)
+        x = [self.convs(ego), eli] + ([goal] if self.heads == "mlp" else [])
+        h = self.fc(torch.cat(x, dim=1))
+        return torch.cat([h, goal], dim=1)
 
     def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
         """(stop distribution, sub-goal distribution over raw (rho, theta), value (B,))."""
         h = self.features(obs)
         logits = self.stop_logits(h)
+        goal = _as_tensor(obs["goal"], logits.device, torch.float32)
+        if self.heads == "mlp":
+            logits = logits + self.stop_skip(h[:, -GOAL_FEATURES:])
         if self.stop_within is not None:
             # the stop action is masked out while the goal reads farther than stop_within
-            far = _as_tensor(obs["goal"], logits.device, torch.float32)[:, 0] > self.stop_within
+            far = goal[:, 0] > self.stop_within
             logits = torch.stack([logits[:, 0], logits[:, 1].masked_fill(far, -1e9)], dim=1)
         stop = Categorical(logits=logits)
         mean = self.subgoal_mean(h)
+        if self.heads == "mlp":
+            # The sub-goal head answers relative to the goal: its zero output is a sub-goal
+            # towards the goal, at the goal when it is within prior_distance; directions
+            # then wrap round the goal's direction, not round +-pi.
+            mean = mean + torch.stack([goal[:, 0].clamp(max=self.prior_distance), goal[:, 1]], dim=1)
         if self.goal_prior:
-            goal = _as_tensor(obs["goal"], mean.device, torch.float32)
             prior = torch.stack([goal[:, 0].clamp(max=self.prior_distance),
                                  goal[:, 1].clamp(-self.prior_angle, self.prior_angle)], dim=1)
             mean = mean + prior
@@ -376,8 +427,9 @@ class Executor(nn.Module):
     goal_key = "subgoal"
 
     def __init__(self, memory: str = "gru", resolution: int = 128, eli_dim: int = ELI_DIM,
-                 smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512):
+                 smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512, goal_skip: bool = True):
         super().__init__()
+        self.goal_skip = goal_skip
         if memory not in ("gru", "smt"):
             raise ValueError(f"memory must be 'gru' or 'smt', got {memory!r}")
         self.memory_kind, self.resolution, self.eli_dim = memory, resolution, eli_dim
@@ -388,8 +440,13 @@ class Executor(nn.Module):
         else:
             self.memory = SMTMemory(emb + 3, 128, smt_heads, smt_memory)
         self.eli_head = layer_init(nn.Linear(self.memory.out_dim, eli_dim))
-        self.actor = layer_init(nn.Linear(eli_dim, NUM_ACTIONS), std=0.01)
-        self.critic = layer_init(nn.Linear(eli_dim, 1), std=1.0)
+        # goal_skip: the heads also read the encoded goal vector, so that "turn towards the
+        # goal" is a simple function of their input from the first update on (through the
+        # memory alone, 3 goal inputs beside 512 image features are learnt too slowly: the
+        # policy's entropy collapsed before it did, README).
+        head_in = eli_dim + (3 if goal_skip else 0)
+        self.actor = layer_init(nn.Linear(head_in, NUM_ACTIONS), std=0.01)
+        self.critic = layer_init(nn.Linear(head_in, 1), std=1.0)
 
     @property
     def device(self) -> torch.device:
@@ -398,25 +455,27 @@ class Executor(nn.Module):
     def initial_state(self, batch: int) -> torch.Tensor:
         return self.memory.initial_state(batch, self.device)
 
-    def _inputs(self, obs: dict) -> torch.Tensor:
-        """Any leading dims (...) -> (..., emb + 3)."""
+    def _inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """Any leading dims (...) -> memory input (..., emb + 3) and encoded goal (..., 3)."""
         dev = self.device
         rgb = _as_tensor(obs["rgb"], dev)
         depth = _as_tensor(obs["depth"], dev, torch.float32)
-        goal = _as_tensor(obs[self.goal_key], dev, torch.float32)
+        goal = encode_polar(_as_tensor(obs[self.goal_key], dev, torch.float32))
         lead = rgb.shape[:-3]
         feat = self.encoder(rgb.reshape(-1, *rgb.shape[-3:]), depth.reshape(-1, *depth.shape[-3:]))
-        return torch.cat([feat.view(*lead, -1), encode_polar(goal)], dim=-1)
+        return torch.cat([feat.view(*lead, -1), goal], dim=-1), goal
 
-    def _heads(self, out: torch.Tensor):
+    def _heads(self, out: torch.Tensor, goal: torch.Tensor):
         eli = torch.tanh(self.eli_head(out))
-        return self.actor(eli), self.critic(eli).squeeze(-1), eli
+        h = torch.cat([eli, goal], dim=-1) if self.goal_skip else eli
+        return self.actor(h), self.critic(h).squeeze(-1), eli
 
     def forward(self, obs: dict, state: torch.Tensor, starts):
         """One step for a batch: (logits (B, 4), value (B,), eli (B, 128), new state)."""
         starts = _as_tensor(starts, self.device, torch.bool)
-        out, state = self.memory.step(self._inputs(obs), state, starts)
-        logits, value, eli = self._heads(out)
+        x, goal = self._inputs(obs)
+        out, state = self.memory.step(x, state, starts)
+        logits, value, eli = self._heads(out, goal)
         return logits, value, eli, state
 
     @torch.no_grad()
@@ -432,8 +491,9 @@ class Executor(nn.Module):
         """Training pass over (T, B) sequences whose memory is ``initial_state`` before step 0
         and is cleared where ``starts``: (log_prob, entropy, value), each (T, B)."""
         starts = _as_tensor(starts, self.device, torch.bool)
-        out = self.memory.sequence(self._inputs(obs_seq), initial_state, starts)
-        logits, value, _ = self._heads(out)
+        x, goal = self._inputs(obs_seq)
+        out = self.memory.sequence(x, initial_state, starts)
+        logits, value, _ = self._heads(out, goal)
         dist = Categorical(logits=logits)
         return dist.log_prob(_as_tensor(actions, self.device).long()), dist.entropy(), value
 

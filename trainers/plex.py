@@ -37,12 +37,14 @@ from plex_ma.networks import Executor, FlatPolicy, Planner
 
 from . import distributed
 from .checkpoint import save_checkpoint
+from .driver import Decision, PlexDriver, make_executor, make_planner
 from .logger import MetricLogger
 from .ppo import PPOConfig, RolloutBuffer, compute_gae, ppo_update
 
 CHECKPOINT_FORMAT = 1
 # Config fields added after checkpoints were first written, with the value older ones had.
-LEGACY_CONFIG = {"planner_goal_prior": False, "planner_stop_within": None}
+LEGACY_CONFIG = {"planner_goal_prior": False, "planner_stop_within": None, "planner_heads": "linear",
+                 "executor_goal_skip": False}
 
 
 def saved_config(state: dict) -> dict:
@@ -51,9 +53,13 @@ def saved_config(state: dict) -> dict:
 
 
 def env_kwargs(cfg: TrainConfig, split: str = "train") -> dict:
+    """The env config of a training config (PLEX's env options for the PLEX methods)."""
     kw = dict(resolution=cfg.resolution, max_steps=cfg.max_steps, scenes=cfg.scenes, split=split)
     if split == "train":
         kw["num_scenes"] = cfg.num_scenes
+    if cfg.method.startswith("plex"):
+        kw |= dict(n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, subgoal_radius=cfg.subgoal_radius,
+                   executor_stop_penalty=cfg.executor_stop_penalty)
     return kw
 
 
@@ -62,11 +68,11 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     memory = cfg.method.split("-")[1]
     if cfg.method.startswith("plex"):
         return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max, goal_prior=cfg.planner_goal_prior,
-                                   stop_within=cfg.planner_stop_within),
+                                   stop_within=cfg.planner_stop_within, heads=cfg.planner_heads),
                 "executor": Executor(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
-                                     gru_hidden=cfg.executor_hidden)}
+                                     gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip)}
     return {"policy": FlatPolicy(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
-                                 gru_hidden=cfg.executor_hidden)}
+                                 gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip)}
 
 
 @dataclass
@@ -134,7 +140,7 @@ class Trainer:
             raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}")
         saved = saved_config(state)
         for key in ("method", "resolution", "eli", "smt_memory", "executor_hidden", "planner_goal_prior",
-                    "planner_stop_within"):
+                    "planner_stop_within", "planner_heads", "executor_goal_skip"):
             if saved.get(key) != getattr(self.cfg, key):
                 raise CheckpointError(f"the run dir's checkpoint has {key}={saved.get(key)!r} but this run asks "
                                       f"for {getattr(self.cfg, key)!r}; use another --run-dir")
@@ -225,226 +231,210 @@ class PlexTrainer(Trainer):
 
     def __init__(self, cfg: TrainConfig, log: bool = True):
         super().__init__(cfg, log)
-        self.warm_env = bool(cfg.warmup_scenes) and self._warming_up()
-        self.env = self._make_env()
         self.planner: Planner = self.nets["planner"]
         self.executor: Executor = self.nets["executor"]
-        self.restart_memory = self.env.executor_memory_restart
         self.np_rng = np.random.default_rng(cfg.seed + self.dist.seed_offset)
         self.executor_success: deque = deque(maxlen=200)  # reached / turns, over recent turns
+        self.warm_env = bool(cfg.warmup_scenes) and self._warming_up()
+        self._make_driver()
 
     def _warming_up(self) -> bool:
         return self.step < self.cfg.planner_warmup_steps
 
-    def _make_env(self) -> PlexVectorEnv:
-        """The training worlds; during the warm-up on ``--warmup-scenes`` if given."""
+    def _phase(self) -> str:
+        return "warmup" if self._warming_up() else "main"
+
+    def _make_driver(self) -> None:
+        """The training worlds (during the warm-up on ``--warmup-scenes`` if given) and the
+        driver with this phase's planner and executor policies."""
         cfg = self.cfg
         kw = env_kwargs(cfg)
         if self.warm_env:
             kw |= {"scenes": cfg.warmup_scenes, "num_scenes": None, "max_steps": cfg.warmup_max_steps}
-        return PlexVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["executor"] + self.dist.seed_offset,
-                             n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, subgoal_radius=cfg.subgoal_radius, **kw)
-
-    def _start_episodes(self) -> torch.Tensor:
-        """Reset the worlds and the per-world bookkeeping; returns the executor's memory."""
-        n = self.cfg.num_envs
-        self.turn, self.pl_obs, self.ex_obs = self.env.reset(seed=self.cfg.seed + self.step + self.dist.seed_offset)
-        self.pending = [None] * n
-        self.chains = [[] for _ in range(n)]
-        self.ep_return = np.zeros(n)
-        self.starts = np.ones(n, np.bool_)
+        self.env = PlexVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["executor"] + self.dist.seed_offset,
+                                 **kw)
+        self.phase = self._phase()
+        planner = cfg.warmup_planner if self.phase == "warmup" else cfg.planner
+        self.driver = PlexDriver(
+            self.env,
+            make_planner(planner, self.env, self.planner, rng=self.np_rng, max_distance=cfg.random_subgoal_distance,
+                         max_angle=cfg.random_subgoal_angle),
+            make_executor(cfg.executor, self.env, self.executor))
+        self.driver.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
+        n = cfg.num_envs
         self.turn_d0 = np.zeros(n)
-        return self.executor.initial_state(n)
+        # The planner's pending transition per world (its decision waits for its reward and
+        # its successor) and the closed transitions of this planner rollout, in order.
+        self.pending = np.zeros(n, np.bool_)
+        self.pending_reward = np.zeros(n)
+        self.pending_value = np.zeros(n, np.float32)
+        self.pending_data: dict | None = None
+        self.closed: list[dict] = []
+        self.n_closed = 0
 
-    def _random_decisions(self, rows: np.ndarray) -> dict:
-        """The ``--planner random`` stand-in: uniform sub-goals, never a stop, never trained."""
-        k = len(rows)
-        rho = self.np_rng.uniform(0.5, self.cfg.random_subgoal_distance, k)
-        theta = self.np_rng.uniform(-self.cfg.random_subgoal_angle, self.cfg.random_subgoal_angle, k)
-        sub = torch.as_tensor(np.stack([rho, theta], 1), dtype=torch.float32)
-        return {"stop": torch.zeros(k, dtype=torch.long), "subgoal": sub, "subgoal_env": sub,
-                "log_prob": torch.zeros(k), "value": torch.zeros(k)}
+    # ---------------------------------------------------------------- planner transitions
+    def _close(self, rows: np.ndarray, done: bool) -> None:
+        rows = rows[self.pending[rows]]
+        if not len(rows):
+            return
+        self.closed.append({"world": rows.copy(), "reward": self.pending_reward[rows].astype(np.float32),
+                            "done": np.full(len(rows), done), "value": self.pending_value[rows].copy(),
+                            **{k: v[rows].clone() for k, v in self.pending_data.items()}})
+        self.n_closed += len(rows)
+        self.pending[rows] = False
 
-    def _planner_decisions(self) -> float:
-        """Decide for every world whose turn is the planner's, until none is left. Returns
-        the seconds spent inside the env (the rest is the planner's inference)."""
-        n = self.cfg.num_envs
-        env_seconds = 0.0
-        while True:
-            rows = np.flatnonzero(self.turn == PLANNER)
-            if len(rows) == 0:
-                return env_seconds
-            obs = {k: v[rows] for k, v in self.pl_obs.items()}
-            if self.cfg.planner == "random" or self._warming_up():
-                out = self._random_decisions(rows)
-                stop = np.zeros(n, np.int64)
-                sub = np.zeros((n, 2), np.float32)
-                sub[rows] = out["subgoal_env"].numpy()
-                t0 = time.perf_counter()
-                res = self.env.step(stop=stop, subgoal=sub)
-                env_seconds += time.perf_counter() - t0
-                self._after_step(res)
-                self.starts[rows] = True
-                continue
-            out = self.planner.act(obs)
-            for k, i in enumerate(rows):
-                if self.pending[i] is not None:  # the previous decision's transition is complete
-                    self._close(i, done=False)
-                self.pending[i] = {"obs": {key: v[k] for key, v in obs.items()}, "stop": int(out["stop"][k]),
-                                   "subgoal": out["subgoal"][k].numpy(), "log_prob": float(out["log_prob"][k]),
-                                   "value": float(out["value"][k]), "reward": 0.0}
-            stop = np.zeros(n, np.int64)
-            sub = np.zeros((n, 2), np.float32)
-            stop[rows] = out["stop"].numpy()
-            sub[rows] = out["subgoal_env"].numpy()
-            t0 = time.perf_counter()
-            res = self.env.step(stop=stop, subgoal=sub)
-            env_seconds += time.perf_counter() - t0
-            self._after_step(res)
-            self.starts[rows] = True  # a new sub-goal (or episode) begins an executor turn
+    def _on_decision(self, d: Decision) -> None:
+        """Book-keeping of one round of planner decisions (learned planner only)."""
+        rows, out = d.rows, d.out
+        self._close(rows, done=False)  # the previous decision's transition is complete
+        if self.pending_data is None:
+            n = self.cfg.num_envs
+            self.pending_data = {f"obs/{k}": torch.zeros((n,) + v.shape[1:], dtype=torch.as_tensor(v).dtype)
+                                 for k, v in d.obs.items()}
+            self.pending_data |= {"stop": torch.zeros(n, dtype=torch.long), "subgoal": torch.zeros(n, 2),
+                                  "log_prob": torch.zeros(n)}
+        idx = torch.as_tensor(rows)
+        for k, v in d.obs.items():
+            self.pending_data[f"obs/{k}"][idx] = torch.as_tensor(v)
+        self.pending_data["stop"][idx] = torch.as_tensor(out["stop"])
+        self.pending_data["subgoal"][idx] = out["raw"]
+        self.pending_data["log_prob"][idx] = out["log_prob"]
+        self.pending_value[rows] = out["value"].numpy()
+        self.pending_reward[rows] = 0.0
+        self.pending[rows] = True
+        self._planner_rewards(d.result)
 
-    def _close(self, i: int, done: bool) -> None:
-        p = self.pending[i]
-        p["done"] = done
-        self.chains[i].append(p)
-        self.pending[i] = None
+    def _planner_rewards(self, res) -> None:
+        self.pending_reward[self.pending] += res.rewards[self.pending, PLANNER]
+        self._close(np.flatnonzero(res.terminated | res.truncated), done=True)
 
-    def _after_step(self, res) -> None:
-        r_pl = res.rewards[:, PLANNER]
-        self.ep_return += r_pl
-        for i in np.flatnonzero(self.has_pending()):
-            self.pending[i]["reward"] += float(r_pl[i])
-        ended = np.flatnonzero(res.terminated | res.truncated)
-        for k, i in enumerate(ended):
-            self.stats.add(res.episode_infos[k], float(self.ep_return[i]))
-            self.ep_return[i] = 0.0
-            if self.pending[i] is not None:
-                self._close(i, done=True)
-        self.turn = res.turn
-        self.pl_obs = res.planner_obs
-        self.ex_obs = res.executor_obs
-
-    def has_pending(self) -> np.ndarray:
-        return np.array([p is not None for p in self.pending])
+    def _count_episodes(self, res) -> None:
+        for info, ret in zip(res.episode_infos, self.driver.episode_returns):
+            self.stats.add(info, ret)
 
     def _planner_ready(self) -> bool:
         # distributed: all workers update the planner together, once every one of them is ready
-        return distributed.all_true(sum(len(c) for c in self.chains) >= self.cfg.n_pl * self.cfg.num_envs)
+        return distributed.all_true(self.n_closed >= self.cfg.n_pl * self.cfg.num_envs)
 
     def _update_planner(self) -> dict:
         """GAE along each world's chain of decisions, then PPO on the flattened batch."""
-        obs, stop, sub, logp, val, adv, ret = [], [], [], [], [], [], []
-        for i, chain in enumerate(self.chains):
-            if not chain:
-                continue
-            rewards = np.array([[t["reward"]] for t in chain], np.float32)
-            values = np.array([[t["value"]] for t in chain], np.float32)
-            dones = np.array([[t["done"]] for t in chain])
-            boot = np.zeros_like(values)
-            # the chain's last transition bootstraps from the value of the pending decision
-            boot[-1, 0] = self.pending[i]["value"] if (self.pending[i] is not None and not dones[-1, 0]) else 0.0
-            a, r = compute_gae(rewards, values, dones, np.zeros_like(dones), boot, self.cfg.gamma_pl,
-                               self.cfg.gae_lambda)
-            adv.append(a[:, 0])
-            ret.append(r[:, 0])
-            obs += [t["obs"] for t in chain]
-            stop += [t["stop"] for t in chain]
-            sub += [t["subgoal"] for t in chain]
-            logp += [t["log_prob"] for t in chain]
-            val += [t["value"] for t in chain]
-            self.chains[i] = []
-        m = len(stop)
+        cat = {k: (torch.cat if isinstance(v, torch.Tensor) else np.concatenate)([c[k] for c in self.closed])
+               for k, v in self.closed[0].items()}
+        self.closed, self.n_closed = [], 0
+        order = np.argsort(cat["world"], kind="stable")  # each world's chain, in decision order
+        world, reward, done, value = (cat[k][order] for k in ("world", "reward", "done", "value"))
+        m = len(world)
+        # the next transition's value within a world's chain; the chain's last one
+        # bootstraps from the value of the world's pending decision
+        last = np.r_[world[1:] != world[:-1], True]
+        nxt = np.r_[value[1:], 0.0].astype(np.float32)
+        boot = np.where(self.pending[world], self.pending_value[world], 0.0)
+        nxt = np.where(last, boot, nxt)
+        nxt = np.where(done, 0.0, nxt)
+        g, lam = self.cfg.gamma_pl, self.cfg.gae_lambda
+        delta = reward + g * nxt - value
+        adv = np.zeros(m, np.float32)
+        a = 0.0
+        for t in range(m - 1, -1, -1):
+            a = delta[t] + (0.0 if (last[t] or done[t]) else g * lam * a)
+            adv[t] = a
+        idx = torch.as_tensor(order)
         buf = RolloutBuffer(1, m)
-        buf.add(0, obs={k: torch.as_tensor(np.stack([o[k] for o in obs])) for k in obs[0]},
-                actions={"stop": torch.tensor(stop), "subgoal": torch.as_tensor(np.stack(sub))},
-                log_probs=torch.tensor(logp), values=torch.tensor(val), rewards=torch.zeros(m),
+        buf.add(0, obs={k[4:]: v[idx] for k, v in cat.items() if k.startswith("obs/")},
+                actions={"stop": cat["stop"][idx], "subgoal": cat["subgoal"][idx]},
+                log_probs=cat["log_prob"][idx], values=torch.as_tensor(value), rewards=torch.zeros(m),
                 dones=torch.zeros(m, dtype=torch.bool))
-        buf.data["advantages"] = torch.cat(adv)[None]
-        buf.data["returns"] = torch.cat(ret)[None]
-        ppo = self.ppo
+        buf.data["advantages"] = torch.as_tensor(adv)[None]
+        buf.data["returns"] = torch.as_tensor(adv + value)[None]
+        ppo = dataclasses.replace(self.ppo, num_minibatches=self.cfg.planner_minibatches)
         if self.cfg.planner_entropy_coef is not None:
             ppo = dataclasses.replace(ppo, ent_coef=self.cfg.planner_entropy_coef)
         stats = ppo_update(self.planner, buf, self.opts["planner"], ppo, self.gen)
         self.updates["planner"] += 1
         return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": m}
 
+    # ---------------------------------------------------------------- executor
     def _values(self, obs: dict, state: torch.Tensor) -> np.ndarray:
         """V of executor observations with the given memory, continuing the sequence."""
         with torch.no_grad():
             _, value, _, _ = self.executor(obs, state, torch.zeros(len(state), dtype=torch.bool))
         return value.numpy()
 
+    def _bootstrap(self, res, state) -> np.ndarray:
+        """V(observation after the last action) of turns cut at N_EX or by max_steps, with
+        the memory they had; for ended episodes that observation is the final one, as the
+        world has already been reset."""
+        n = self.cfg.num_envs
+        ended = res.terminated | res.truncated
+        trunc = res.executor_turn_end & ~res.executor_stopped
+        boot = np.zeros(n, np.float32)
+        rows = np.flatnonzero(trunc & ~ended)
+        if len(rows):
+            boot[rows] = self._values({k: v[rows] for k, v in res.executor_obs.items()}, state[rows])
+        rows = np.flatnonzero(trunc & ended)
+        if len(rows):
+            sel = np.searchsorted(np.flatnonzero(ended), rows)
+            boot[rows] = self._values({k: v[sel] for k, v in res.final_executor_obs.items()}, state[rows])
+        return boot
+
     def train(self) -> dict:
         cfg = self.cfg
         n, T = cfg.num_envs, cfg.rollout_steps
-        state = self._start_episodes()
         bar, last_log, t_start, s_start, timing = self._loop_start()
         while self.step < cfg.total_steps:
-            if self.warm_env and not self._warming_up():
-                # The warm-up on --warmup-scenes is over: move to the training scenes. Episodes in
-                # flight are dropped (the random planner's decisions are not trained on anyway).
+            if self.phase != self._phase():
+                # The warm-up is over: new worlds (on the training scenes) and the configured
+                # planner. Episodes in flight are dropped (the warm-up planner is not trained).
                 self.env.close()
                 self.warm_env = False
-                self.env = self._make_env()
                 self.stats = EpisodeStats()
-                state = self._start_episodes()
+                self._make_driver()
+            drv = self.driver
+            learn_ex = drv.executor.learns
+            learn_pl = drv.planner.learns
             buf = RolloutBuffer(T, n)
+            if learn_ex:
+                buf.initial_state = drv.state.clone()
             for t in range(T):
                 t0 = time.perf_counter()
-                planner_env_seconds = self._planner_decisions()
-                t1 = time.perf_counter()
-                if t == 0:
-                    buf.initial_state = state.clone()
-                starts = self.starts.copy()
+                env0 = drv.env_seconds
+                drv.decide(on_decision=self._on_decision if learn_pl else None)
                 # sub-goal distance at the start of each turn (for the executor's success rate)
-                self.turn_d0[starts] = self.ex_obs["subgoal"][starts, 0]
-                out, state = self.executor.act(self.ex_obs, state, starts)
-                action = out["action"].numpy()
-                obs_t = {k: np.array(v) for k, v in self.ex_obs.items()}
-                t2 = time.perf_counter()
-                res = self.env.step(action=action, eli=out["eli"].numpy())
-                t3 = time.perf_counter()
-                ended = res.terminated | res.truncated
-                trunc = res.executor_turn_end & ~res.executor_stopped
-                # A turn cut at N_EX (or by max_steps) bootstraps from V(observation after the
-                # last action) with the memory it had; for ended episodes that observation is
-                # the final one, as the world has already been reset.
-                boot = np.zeros(n, np.float32)
-                rows = np.flatnonzero(trunc & ~ended)
-                if len(rows):
-                    boot[rows] = self._values({k: v[rows] for k, v in res.executor_obs.items()}, state[rows])
-                rows = np.flatnonzero(trunc & ended)
-                if len(rows):
-                    sel = np.searchsorted(np.flatnonzero(ended), rows)
-                    boot[rows] = self._values({k: v[sel] for k, v in res.final_executor_obs.items()}, state[rows])
-                buf.add(t, obs=obs_t, actions=torch.as_tensor(action), log_probs=out["log_prob"],
-                        values=out["value"], rewards=torch.as_tensor(res.rewards[:, 1]),
-                        dones=torch.as_tensor(res.executor_stopped), truncated=torch.as_tensor(trunc),
-                        starts=torch.as_tensor(starts), bootstrap_values=torch.as_tensor(boot))
+                self.turn_d0[drv.starts] = drv.executor_obs["subgoal"][drv.starts, 0]
+                s = drv.step()
+                res = s.result
+                if learn_ex:
+                    trunc = res.executor_turn_end & ~res.executor_stopped
+                    buf.add(t, obs=s.obs, actions=torch.as_tensor(s.out["action"]), log_probs=s.out["log_prob"],
+                            values=s.out["value"], rewards=torch.as_tensor(res.rewards[:, 1]),
+                            dones=torch.as_tensor(res.executor_stopped), truncated=torch.as_tensor(trunc),
+                            starts=torch.as_tensor(s.starts), bootstrap_values=torch.as_tensor(self._bootstrap(res, s.state)))
                 # Success over the turns whose sub-goal was not already within reach at the start.
                 counted = res.executor_turn_end & (self.turn_d0 >= self.env.config.subgoal_radius)
                 self.executor_success.extend(res.executor_reached[counted].tolist())
-                self.starts[:] = False
-                self.starts |= res.executor_turn_end & self.restart_memory
-                self.starts |= ended
-                self._after_step(res)
+                if learn_pl:
+                    self._planner_rewards(res)
+                self._count_episodes(res)
                 self.step += n * self.dist.world_size  # total over all workers
                 # sim: time inside env.step; inference: the networks and the bookkeeping
-                timing["inference"] += (t1 - t0 - planner_env_seconds) + (t2 - t1) + (time.perf_counter() - t3)
-                timing["sim"] += planner_env_seconds + (t3 - t2)
-            # V(o_T) for worlds still inside a turn (their memory continues)
-            rows = np.flatnonzero(self.turn != PLANNER)
-            last = np.zeros(n, np.float32)
-            if len(rows):
-                last[rows] = self._values({k: v[rows] for k, v in self.ex_obs.items()}, state[rows])
+                sim = drv.env_seconds - env0
+                timing["inference"] += time.perf_counter() - t0 - sim
+                timing["sim"] += sim
             t4 = time.perf_counter()
-            buf.compute_returns(cfg.gamma_ex, cfg.gae_lambda, last_values=torch.as_tensor(last))
-            metrics = {f"learner/executor_{k}": v for k, v in
-                       ppo_update(self.executor, buf, self.opts["executor"], self.ppo, self.gen).items()}
+            metrics = {}
+            if learn_ex:
+                # V(o_T) for worlds still inside a turn (their memory continues)
+                rows = np.flatnonzero(drv.turn != PLANNER)
+                last = np.zeros(n, np.float32)
+                if len(rows):
+                    last[rows] = self._values({k: v[rows] for k, v in drv.executor_obs.items()}, drv.state[rows])
+                buf.compute_returns(cfg.gamma_ex, cfg.gae_lambda, last_values=torch.as_tensor(last))
+                metrics |= {f"learner/executor_{k}": v for k, v in
+                            ppo_update(self.executor, buf, self.opts["executor"], self.ppo, self.gen).items()}
             self.updates["executor"] += 1
             if self.executor_success:
                 metrics["metrics/executor_success"] = float(np.mean(self.executor_success))
-            if self.cfg.planner == "learn" and self._planner_ready():
+            if learn_pl and self._planner_ready():
                 metrics |= self._update_planner()
             timing["update"] += time.perf_counter() - t4
             last_log = self._end_of_update(self.updates["executor"], metrics, timing, t_start, s_start, bar) or last_log
