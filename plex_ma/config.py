@@ -32,8 +32,8 @@ class TrainConfig:
     """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping) or under the shortest-path oracle planner (ground truth)"""
     executor: Literal["learn", "oracle"] = "learn"
     """PLEX only: learn the executor, or train the planner alone over the shortest-path oracle executor (ground truth)"""
-    warmup_planner: Literal["random", "oracle"] = "random"
-    """PLEX only: the planner that stands in during --planner-warmup-steps (oracle: ground-truth sub-goals along the shortest path)"""
+    warmup_planner: Literal["random", "oracle", "learn"] = "random"
+    """PLEX only: the planner during --planner-warmup-steps: random sub-goals, the shortest-path oracle (ground truth), or the learned planner acting without being updated"""
     random_subgoal_distance: float = 2.0
     """largest distance (m) of the random planner's sub-goals (at most rho_max)"""
     random_subgoal_angle: float = 1.0
@@ -62,6 +62,8 @@ class TrainConfig:
     """training scenes (None: the source's default, 72 for procgen)"""
     lr: float = 2.5e-4
     """Adam learning rate (both agents)"""
+    planner_lr: float | None = None
+    """PLEX only: the planner's Adam learning rate (None: --lr)"""
     rollout_steps: int = 64
     """executor (or flat agent) steps per world between its PPO updates"""
     n_pl: int = 128
@@ -126,15 +128,16 @@ PRESETS: dict[str, dict] = {
     # Finishes in well under two minutes on two cores and still writes a checkpoint.
     "smoke": dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, n_pl=8, num_scenes=4,
                   checkpoint_interval=5, ppo_epochs=2),
-    # What learns best per CPU hour on this machine (see README: chosen by measurement).
-    # Deviations from the paper, for a budget 100x smaller: a 128-unit executor GRU (at 512
-    # the GRU is half of the update's FLOPs), lr 1e-3 (the executor's open-room skill took
-    # 2x fewer steps than at 2.5e-4), and 30k steps of executor warm-up in an open room
-    # under random sub-goals (1.5 m, any direction) in 40-step episodes: in houses, most
-    # sub-goals of an untrained planner lie behind walls and the executor learns only to STOP.
-    "cpu": dict(total_steps=2_000_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=32, torch_threads=1,
-                executor_hidden=128, lr=1e-3, planner_warmup_steps=30_000, warmup_scenes="open-room",
-                random_subgoal_distance=1.5, random_subgoal_angle=3.14),
+    # What learns best per CPU hour on this machine (docs/results.md: each deviation from the
+    # paper with the measurement behind it). A 128-unit executor GRU (at 512 the GRU is half
+    # of the update's FLOPs) and lr 1e-3 for the executor, 2.5e-4 (the paper's) for the
+    # planner; the executor's first 40k steps under the shortest-path oracle planner (ground
+    # truth, training only) while the planner waits; a -0.5 executor reward for a STOP short
+    # of its sub-goal (without it the executor's STOP was a free exit and its policy
+    # collapsed onto it); planner updates every 8 decisions per world (N_PL = 8).
+    "cpu": dict(total_steps=2_000_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=8, torch_threads=1,
+                executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_warmup_steps=40_000,
+                warmup_planner="oracle", executor_stop_penalty=-0.5),
     # The paper's settings: 256 px images, N_PL = 128, 30M steps.
     "paper": dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128),
 }
@@ -161,6 +164,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.resolution in range(40, 1025), "resolution", "must be in [40, 1024] (the executor's CNN needs 40 px)")
     need(cfg.executor_hidden >= 8, "executor_hidden", "must be >= 8")
     need(cfg.lr > 0, "lr", "must be positive")
+    need(cfg.planner_lr is None or cfg.planner_lr > 0, "planner_lr", "must be positive")
     need(cfg.rollout_steps >= 2, "rollout_steps", "must be >= 2")
     need(cfg.n_pl >= 1, "n_pl", "must be >= 1")
     need(cfg.n_ex >= 1, "n_ex", "must be >= 1")

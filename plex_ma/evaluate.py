@@ -93,7 +93,8 @@ def run_episodes(cfg: TrainConfig, nets: dict, split: str = "test", episodes: in
     if recorder is not None:
         recorder.begin(env)
     if plex:
-        drv = PlexDriver(env, make_planner(planner, env, nets.get("planner"), not sample, rng),
+        pl_kw = {"stop_prob": 0.02} if planner == "random" else {}  # random episodes end now and then
+        drv = PlexDriver(env, make_planner(planner, env, nets.get("planner"), not sample, rng, **pl_kw),
                          make_executor(executor, env, nets.get("executor"), not sample, rng))
         drv.reset()
         done = lambda: len(results) == len(eps)  # noqa: E731  (a planner that always stops never leaves decide)

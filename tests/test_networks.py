@@ -195,21 +195,23 @@ def test_flops_and_matmul_speed(planner):
     assert matmul_gflops(n=256, seconds=0.05) > 0
 
 
-def test_planner_goal_prior_starts_goal_directed():
-    """With the goal prior an untrained planner's mean sub-goal is (min(d, 1.5 m), goal
-    direction clipped to +-0.5 rad), it stops near the goal and rarely elsewhere; without it the paper's plain
-    heads ignore the goal's direction."""
+def test_planner_heads_start_goal_relative():
+    """The default (mlp) heads start goal-relative: an untrained planner's mean sub-goal is
+    (min(d, 1.5 m), the goal's direction) whatever the map, it stops near the goal and
+    rarely elsewhere; the paper's linear heads (and goal_prior on them) start straight ahead."""
     torch.manual_seed(0)
-    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64, goal_prior=True)
+    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64)
     obs = pl.example_obs(64)
     obs["goal"] = torch.stack([torch.linspace(0.0, 8.0, 64), torch.linspace(-3.0, 3.0, 64)], 1)
     stop_d, sub_d, _ = pl(obs)
     torch.testing.assert_close(sub_d.mean[:, 0], obs["goal"][:, 0].clamp(max=1.5), atol=0.05, rtol=0)
-    torch.testing.assert_close(sub_d.mean[:, 1], obs["goal"][:, 1].clamp(-0.5, 0.5), atol=0.05, rtol=0)
+    torch.testing.assert_close(sub_d.mean[:, 1], obs["goal"][:, 1], atol=0.05, rtol=0)
     p_stop = stop_d.probs[:, 1]
     d = obs["goal"][:, 0]
-    assert (p_stop[d < 0.1] > 0.5).all() and (p_stop[d > 0.3] < 0.02).all()
-    plain = Planner(rho_max=4.0, channels=(8, 8), hidden=64, goal_prior=False)
+    assert (p_stop[d < 0.1] > 0.4).all() and (p_stop[d > 0.3] < 0.02).all()
+    prior = Planner(rho_max=4.0, channels=(8, 8), hidden=64, heads="linear", goal_prior=True)
+    torch.testing.assert_close(prior(obs)[1].mean[:, 1], obs["goal"][:, 1].clamp(-0.5, 0.5), atol=0.05, rtol=0)
+    plain = Planner(rho_max=4.0, channels=(8, 8), hidden=64, heads="linear")
     mean = plain(obs)[1].mean
     assert mean[:, 1].abs().max() < 0.2  # straight ahead whatever the goal's direction
 
@@ -218,7 +220,7 @@ def test_planner_stop_within_masks_far_stops():
     """--planner-stop-within: no stop is ever sampled (or has probability) while the goal
     reads farther; near the goal the stop head is untouched, and log-probs stay finite."""
     torch.manual_seed(0)
-    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64, stop_within=1.0, init_stop_prob=0.5)
+    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64, stop_within=1.0, init_stop_prob=0.5, heads="linear")
     obs = pl.example_obs(200)
     obs["goal"][:, 0] = torch.linspace(0.0, 4.0, 200)
     far = obs["goal"][:, 0] > 1.0

@@ -107,7 +107,8 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.nets = build_policies(cfg)
-        self.opts = {k: torch.optim.Adam(m.parameters(), lr=cfg.lr, eps=1e-5) for k, m in self.nets.items()}
+        lrs = {"planner": cfg.planner_lr or cfg.lr}
+        self.opts = {k: torch.optim.Adam(m.parameters(), lr=lrs.get(k, cfg.lr), eps=1e-5) for k, m in self.nets.items()}
         self.ppo = PPOConfig(clip_coef=cfg.clip, vf_coef=cfg.value_coef, ent_coef=cfg.entropy_coef,
                              max_grad_norm=cfg.max_grad_norm, update_epochs=cfg.ppo_epochs,
                              num_minibatches=cfg.num_minibatches)
@@ -391,7 +392,7 @@ class PlexTrainer(Trainer):
                 self._make_driver()
             drv = self.driver
             learn_ex = drv.executor.learns
-            learn_pl = drv.planner.learns
+            learn_pl = drv.planner.learns and self.phase == "main"
             buf = RolloutBuffer(T, n)
             if learn_ex:
                 buf.initial_state = drv.state.clone()
