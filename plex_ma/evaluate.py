@@ -57,15 +57,23 @@ def episode_set(env, split: str, n: int, seed: int):
     return list(eps[:n])
 
 
-@torch.no_grad()
 def run_episodes(cfg: TrainConfig, nets: dict, split: str = "test", episodes: int = 100, scenes: str | None = None,
                  num_envs: int = 8, episodes_file: str | None = None, recorder=None, sample: bool = False,
                  planner: str = "learned", executor: str = "learned", seed: int = 0) -> list[dict]:
     """Run each episode once; returns one result dict per episode (by episode_id).
 
-    Actions are greedy, or sampled with ``sample`` (seeded by ``seed``). For PLEX,
+    Actions are greedy, or sampled with ``sample`` (seeded by ``seed``, on a fork of torch's
+    RNG: a caller's random stream, e.g. a training run's, is left as it was). For PLEX,
     ``planner`` and ``executor`` pick each agent's policy: 'learned' (the network in
     ``nets``), 'oracle' (shortest-path, ground truth) or 'random'."""
+    with torch.no_grad(), torch.random.fork_rng():
+        torch.manual_seed(seed)
+        return _run_episodes(cfg, nets, split, episodes, scenes, num_envs, episodes_file, recorder, sample, planner,
+                             executor, seed)
+
+
+def _run_episodes(cfg, nets, split, episodes, scenes, num_envs, episodes_file, recorder, sample, planner, executor,
+                  seed) -> list[dict]:
     scenes = scenes or cfg.scenes
     kw = env_kwargs(dataclasses.replace(cfg, scenes=scenes), split)
     if episodes_file:
@@ -80,7 +88,6 @@ def run_episodes(cfg: TrainConfig, nets: dict, split: str = "test", episodes: in
     # they cycle through it again and those repeats are ignored.
     env.worlds.fixed_episodes = eps
     results: dict[int, dict] = {}
-    torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
 
     def finish(infos, returns):
@@ -90,13 +97,13 @@ def run_episodes(cfg: TrainConfig, nets: dict, split: str = "test", episodes: in
                         "episode_id", "steps")
                 results[info["episode_id"]] = {**{m: info[m] for m in keep}, "reward": float(ret)}
 
-    if recorder is not None:
-        recorder.begin(env)
     if plex:
         pl_kw = {"stop_prob": 0.02} if planner == "random" else {}  # random episodes end now and then
         drv = PlexDriver(env, make_planner(planner, env, nets.get("planner"), not sample, rng, **pl_kw),
                          make_executor(executor, env, nets.get("executor"), not sample, rng))
         drv.reset()
+        if recorder is not None:
+            recorder.begin(env)
         done = lambda: len(results) == len(eps)  # noqa: E731  (a planner that always stops never leaves decide)
 
         def on_decision(d):
@@ -110,11 +117,14 @@ def run_episodes(cfg: TrainConfig, nets: dict, split: str = "test", episodes: in
                 break
             s = drv.step()
             if recorder is not None:
-                recorder.step(env, s.result, eli=s.out["eli"])
+                # stand-in executors send an all-zero ELI: nothing to show
+                recorder.step(env, s.result, eli=s.out["eli"] if drv.executor.learns else None)
             finish(s.result.episode_infos, drv.episode_returns)
     else:
         policy = nets["policy"]
         obs = env.reset()
+        if recorder is not None:
+            recorder.begin(env)
         state = policy.initial_state(num_envs)
         starts = np.ones(num_envs, np.bool_)
         ret = np.zeros(num_envs)

@@ -132,7 +132,10 @@ def test_planner_actions():
     edge = pl.subgoal_to_env(torch.tensor([[5.0, math.pi], [-1.0, -math.pi], [1.0, 3 * math.pi / 2]], dtype=torch.float32))
     assert edge[:, 0].tolist() == [4.0, 0.0, 1.0] and edge[:, 1].double().abs().max() <= math.pi
     assert edge[2, 1].item() == pytest.approx(-math.pi / 2)
-    det = pl.act(obs, deterministic=True)
+    det = pl.act(obs, deterministic=True)  # goal-relative heads: at min(goal distance, 1.5 m) to start with
+    torch.testing.assert_close(det["subgoal"][:, 0], obs["goal"][:, 0].clamp(max=1.5), atol=0.1, rtol=0)
+    linear = Planner(rho_max=4.0, channels=(8, 8), hidden=64, heads="linear")
+    det = linear.act(obs, deterministic=True)
     torch.testing.assert_close(det["subgoal"][:, 0].mean(), torch.tensor(2.0), atol=0.1, rtol=0)  # starts mid-range
 
 
@@ -176,11 +179,18 @@ def test_orthogonal_init(planner):
     _assert_orthogonal(ex.actor.weight, 0.01)
     _assert_orthogonal(ex.critic.weight, 1.0)
     _assert_orthogonal(pl.convs[0].weight, math.sqrt(2))
-    _assert_orthogonal(pl.stop_logits.weight, 0.01)
-    _assert_orthogonal(pl.subgoal_mean.weight, 0.01)
-    _assert_orthogonal(pl.critic.weight, 1.0)
+    for head in (pl.stop_logits, pl.subgoal_mean, pl.critic):  # MLP heads: hidden layer, then the output
+        _assert_orthogonal(head[0].weight, math.sqrt(2))
+    _assert_orthogonal(pl.stop_logits[-1].weight, 0.01)
+    _assert_orthogonal(pl.subgoal_mean[-1].weight, 0.01)
+    _assert_orthogonal(pl.critic[-1].weight, 1.0)
     assert torch.all(ex.actor.bias == 0) and torch.all(ex.encoder.convs[0].bias == 0)
-    assert pl.subgoal_mean.bias.tolist() == [2.0, 0.0]
+    assert pl.subgoal_mean[-1].bias.tolist() == [0.0, 0.0]  # relative to (min(goal distance, 1.5 m), goal direction)
+    linear = Planner(heads="linear")
+    _assert_orthogonal(linear.stop_logits.weight, 0.01)
+    _assert_orthogonal(linear.subgoal_mean.weight, 0.01)
+    _assert_orthogonal(linear.critic.weight, 1.0)
+    assert linear.subgoal_mean.bias.tolist() == [2.0, 0.0]
 
 
 def test_flops_and_matmul_speed(planner):

@@ -16,7 +16,7 @@ import torch
 from plex_ma.config import TrainConfig, preset_defaults, validate
 from plex_ma.envs.vector import PlexVectorEnv
 from plex_ma.record import main as record_main
-from plex_ma.record import run_random_episodes
+from plex_ma.trainers.driver import PlexDriver, RandomExecutor, RandomPlanner
 from plex_ma.trainers.checkpoint import atomic_save
 from plex_ma.trainers.plex import CHECKPOINT_FORMAT, build_policies, make_trainer
 from plex_ma.viz.record import (ENTITY_PATHS, EpisodeRecorder, ego_pixel, pca_2d, record_training_episode,
@@ -144,7 +144,21 @@ def test_recording_follows_the_episode(tmp_path):
         return res
 
     env.step = step
-    run_random_episodes(env, 3, rec, seed=5)  # counts world 0's episodes; world 1 runs as many or fewer
+    rng = np.random.default_rng(5)
+    drv = PlexDriver(env, RandomPlanner(4.0, stop_prob=0.02, rng=rng), RandomExecutor(rng=rng))
+    drv.reset(seed=5)
+    rec.begin(env)
+    world0 = 0  # run until world 0 has finished 3 episodes; world 1 runs as many or fewer
+
+    def on_decision(d):
+        rec.step(env, d.result, rows=d.rows)
+
+    while world0 < 3:
+        drv.decide(on_decision)
+        s = drv.step()
+        rec.step(env, s.result)
+        world0 += int(s.result.terminated[0] or s.result.truncated[0])
+    rec.end()
     assert 1 <= len(rec.episodes) <= 2
     for got, want in zip(rec.episodes, infos):
         assert got["finished"] and got["steps"] == want["steps"]
