@@ -56,6 +56,8 @@ class TrainConfig:
     """seeds the worlds, the networks and the sampling"""
     run_dir: str = "runs/plex-gru"
     """where metrics, TensorBoard logs and checkpoints go; an existing checkpoint here is resumed"""
+    checkpoint: str | None = None
+    """start the networks from this checkpoint's weights (a file or pretrained:NAME) and fine-tune them with fresh optimisers from step 0; a checkpoint in --run-dir is resumed instead"""
     scenes: str = "procgen"
     """scene source: procgen, r2v, or a directory of floor plans"""
     num_scenes: int | None = None

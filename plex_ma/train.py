@@ -38,8 +38,14 @@ def main(argv: list[str] | None = None) -> dict:
     if ctx.is_main:
         print(f"training {cfg.method}{'' if cfg.eli or not cfg.method.startswith('plex') else ' (no ELI)'} "
               f"for {cfg.total_steps:,} steps with {cfg.num_envs} worlds{workers} at {cfg.resolution} px -> {cfg.run_dir}")
+    from plex_ma.trainers.checkpoint import CheckpointError
+
     with distributed.graceful_stop():
-        trainer = make_trainer(cfg)
+        try:
+            trainer = make_trainer(cfg)
+        except CheckpointError as e:  # a bad --checkpoint or run dir: one line, no traceback
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
         try:
             result = trainer.train()
         finally:

@@ -4,6 +4,11 @@ A run dir holds ``latest.pt`` plus numbered ``ckpt_000123.pt`` files. A save wri
 temporary file in the same directory, fsyncs it and renames it into place, so a crash or
 a full disk leaves the previous checkpoint untouched. A load that finds ``latest.pt``
 corrupt or truncated says so and falls back to the newest numbered checkpoint that loads.
+
+``pretrained:NAME`` names an agent shipped inside the package (``plex_ma/data/pretrained/
+NAME.pt``; ``python -m plex_ma.pretrained`` lists them): a weights-only file whose weights
+are stored as float16 (loaded back as float32) beside the config and the command that
+trained it.
 """
 
 from __future__ import annotations
@@ -61,9 +66,33 @@ def _numbered(run_dir: Path) -> list[tuple[int, Path]]:
     return out
 
 
+PRETRAINED_PREFIX = "pretrained:"
+
+
+def pretrained_dir() -> Path:
+    return Path(__file__).resolve().parent.parent / "plex_ma" / "data" / "pretrained"
+
+
+def pretrained_names() -> list[str]:
+    return sorted(p.stem for p in pretrained_dir().glob("*.pt"))
+
+
+def resolve_checkpoint(path: str | os.PathLike) -> Path:
+    """A checkpoint path, with ``pretrained:NAME`` mapped to the shipped file."""
+    s = str(path)
+    if s.startswith(PRETRAINED_PREFIX):
+        name = s[len(PRETRAINED_PREFIX):]
+        p = pretrained_dir() / f"{name}.pt"
+        if not p.is_file():
+            raise CheckpointError(f"no pretrained agent {name!r}; shipped: {pretrained_names()}")
+        return p
+    return Path(path)
+
+
 def load_checkpoint(path: str | os.PathLike) -> dict:
-    """Load one checkpoint file safely (``weights_only=True``) or raise CheckpointError."""
-    path = Path(path)
+    """Load one checkpoint file safely (``weights_only=True``) or raise CheckpointError.
+    ``pretrained:NAME`` loads a shipped agent, its weights as float32."""
+    path = resolve_checkpoint(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path}: does not exist")
     try:
@@ -73,7 +102,26 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
                               f"plex-ma checkpoint): {type(e).__name__}: {e}") from None
     if not isinstance(state, dict) or "config" not in state or "format" not in state:
         raise CheckpointError(f"checkpoint {path}: not a plex-ma checkpoint (missing 'config'/'format')")
+    if state.get("pretrained"):
+        try:
+            state["models"] = {k: {n: t.float() if t.is_floating_point() else t for n, t in sd.items()}
+                               for k, sd in state["models"].items()}
+        except (AttributeError, KeyError, TypeError) as e:
+            raise CheckpointError(f"checkpoint {path}: malformed pretrained weights: {e}") from None
     return state
+
+
+def export_pretrained(src: str | os.PathLike, dst: str | os.PathLike, command: str, notes: dict | None = None) -> Path:
+    """Write the weights-only file of checkpoint ``src`` to ``dst`` (atomically): float16
+    weights, the config, the step, ``command`` (how it was trained) and ``notes`` (e.g. its
+    evaluation)."""
+    state = load_checkpoint(src)
+    out = {"format": state["format"], "pretrained": True, "config": state["config"], "step": state["step"],
+           "updates": state.get("updates", {}), "command": str(command), "notes": dict(notes or {}),
+           "models": {k: {n: t.half() if t.is_floating_point() else t for n, t in sd.items()}
+                      for k, sd in state["models"].items()}}
+    atomic_save(out, dst)
+    return Path(dst)
 
 
 def remove_stale_temporaries(run_dir: str | os.PathLike) -> list[Path]:

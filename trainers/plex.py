@@ -36,7 +36,7 @@ from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
 from plex_ma.networks import Executor, FlatPolicy, Planner
 
 from . import distributed
-from .checkpoint import save_checkpoint
+from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from .driver import Decision, PlexDriver, make_executor, make_planner
 from .logger import MetricLogger
 from .ppo import PPOConfig, RolloutBuffer, compute_gae, ppo_update
@@ -45,6 +45,11 @@ CHECKPOINT_FORMAT = 1
 # Config fields added after checkpoints were first written, with the value older ones had.
 LEGACY_CONFIG = {"planner_goal_prior": False, "planner_stop_within": None, "planner_heads": "linear",
                  "executor_goal_skip": False}
+
+
+# The settings that shape the networks: a checkpoint loads only into a run with the same.
+ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "planner_goal_prior",
+             "planner_stop_within", "planner_heads", "executor_goal_skip")
 
 
 def saved_config(state: dict) -> dict:
@@ -124,6 +129,10 @@ class Trainer:
             self.resumed_from = path
             if self.dist.is_main:
                 print(f"resuming from {path} at step {self.step:,}")
+        elif cfg.checkpoint:
+            self.load_weights(load_checkpoint(cfg.checkpoint))
+            if self.dist.is_main:
+                print(f"fine-tuning the networks of {cfg.checkpoint}")
         distributed.sync_start(self)  # distributed: rank 0's parameters everywhere, samplers seeded apart
 
     # ---------------------------------------------------------------- checkpoints
@@ -134,20 +143,24 @@ class Trainer:
                 "optimizers": {k: o.state_dict() for k, o in self.opts.items()},
                 "torch_rng": torch.get_rng_state(), "sampler_rng": self.gen.get_state()}
 
-    def load_state(self, state: dict) -> None:
-        from .checkpoint import CheckpointError
-
+    def load_weights(self, state: dict, what: str = "the checkpoint") -> None:
+        """The networks' weights from a checkpoint whose architecture settings match this run's."""
         if state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}")
         saved = saved_config(state)
-        for key in ("method", "resolution", "eli", "smt_memory", "executor_hidden", "planner_goal_prior",
-                    "planner_stop_within", "planner_heads", "executor_goal_skip"):
+        for key in ARCH_KEYS:
             if saved.get(key) != getattr(self.cfg, key):
-                raise CheckpointError(f"the run dir's checkpoint has {key}={saved.get(key)!r} but this run asks "
-                                      f"for {getattr(self.cfg, key)!r}; use another --run-dir")
+                raise CheckpointError(f"{what} has {key}={saved.get(key)!r} but this run asks for "
+                                      f"{getattr(self.cfg, key)!r}")
         try:
             for k, m in self.nets.items():
                 m.load_state_dict(state["models"][k])
+        except (KeyError, RuntimeError, ValueError) as e:
+            raise CheckpointError(f"checkpoint does not match the networks: {e}") from None
+
+    def load_state(self, state: dict) -> None:
+        self.load_weights(state, "the run dir's checkpoint (use another --run-dir)")
+        try:
             for k, o in self.opts.items():
                 o.load_state_dict(state["optimizers"][k])
         except (KeyError, RuntimeError, ValueError) as e:
