@@ -241,3 +241,16 @@ def test_plex_planner_return_improves(tmp_path):
     early, late = np.mean(learning[:3]), np.mean(learning[-5:])
     assert early < -0.4, learning[:5]
     assert late > 0.0 and late - early > 0.5, (early, learning[-8:])
+
+
+def test_training_counts_episodes_ended_by_planner_stop(tmp_path):
+    """Episodes that a planner stop ends (inside the planner's decisions) count in the
+    training statistics as well as those cut by max_steps."""
+    from plex_ma.trainers.driver import RandomPlanner
+
+    cfg = tiny(tmp_path, planner="random", max_steps=10_000, total_steps=64)
+    t = make_trainer(cfg)
+    t.driver.planner = RandomPlanner(2.0, stop_prob=0.5, rng=np.random.default_rng(0))
+    t.train()
+    t.close()
+    assert len(t.stats.success) >= 5  # no episode reaches max_steps: all of them ended by a stop

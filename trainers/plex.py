@@ -298,7 +298,11 @@ class PlexTrainer(Trainer):
         self.pending[rows] = False
 
     def _on_decision(self, d: Decision) -> None:
-        """Book-keeping of one round of planner decisions (learned planner only)."""
+        """Book-keeping of one round of planner decisions: episodes ended by a planner stop,
+        and (when the planner learns) its transitions."""
+        self._count_episodes(d.result)
+        if not self._learn_planner:
+            return
         rows, out = d.rows, d.out
         self._close(rows, done=False)  # the previous decision's transition is complete
         if self.pending_data is None:
@@ -405,14 +409,14 @@ class PlexTrainer(Trainer):
                 self._make_driver()
             drv = self.driver
             learn_ex = drv.executor.learns
-            learn_pl = drv.planner.learns and self.phase == "main"
+            learn_pl = self._learn_planner = drv.planner.learns and self.phase == "main"
             buf = RolloutBuffer(T, n)
             if learn_ex:
                 buf.initial_state = drv.state.clone()
             for t in range(T):
                 t0 = time.perf_counter()
                 env0 = drv.env_seconds
-                drv.decide(on_decision=self._on_decision if learn_pl else None)
+                drv.decide(on_decision=self._on_decision)
                 # sub-goal distance at the start of each turn (for the executor's success rate)
                 self.turn_d0[drv.starts] = drv.executor_obs["subgoal"][drv.starts, 0]
                 s = drv.step()
