@@ -22,12 +22,6 @@ class TrainConfig:
     """plex-gru / plex-smt (the paper's PLEX LSTM / SMT) or the flat baselines ppo-gru / ppo-smt"""
     eli: bool = True
     """pass the executor's ELI to the planner (--no-eli: the paper's ablation)"""
-    planner_goal_prior: bool = False
-    """PLEX only: start the planner goal-directed (sub-goal head residual on the goal vector, stop head initialised to fire near the goal); off by default: it learnt worse than the paper's plain heads in our measurements (README)"""
-    planner_heads: Literal["mlp", "linear"] = "mlp"
-    """PLEX only: the planner's heads: mlp (the goal also enters the trunk, an MLP per head, direction relative to the goal's) or linear (linear heads on the 512 features + goal, the paper's text read literally)"""
-    planner_stop_within: float | None = None
-    """PLEX only: the planner may stop only while its goal vector reads closer than this (m); None: anywhere (the paper)"""
     planner: Literal["learn", "random", "oracle"] = "learn"
     """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping) or under the shortest-path oracle planner (ground truth)"""
     executor: Literal["learn", "oracle"] = "learn"
@@ -190,7 +184,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
     need(0 < cfg.subgoal_radius < 5, "subgoal_radius", "must be in (0, 5) metres")
     need(cfg.planner_entropy_coef is None or cfg.planner_entropy_coef >= 0, "planner_entropy_coef", "must be >= 0")
-    need(cfg.planner_stop_within is None or cfg.planner_stop_within > 0, "planner_stop_within", "must be > 0")
     need(cfg.rho_max > 0.5, "rho_max", "must be above 0.5 m")
     need(0.5 < cfg.random_subgoal_distance <= cfg.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")

@@ -75,130 +75,83 @@ def _conv_out_dim(convs: nn.Module, shape: tuple[int, ...]) -> int:
 
 
 class Planner(nn.Module):
-    """Planner: ego map CNN + ELI -> 512 -> (+ goal) -> stop logits, Gaussian sub-goal, value.
+    """Planner: ego map CNN + ELI + goal -> 512 -> (+ goal) -> MLP heads: stop logits,
+    Gaussian sub-goal, value.
+
+    The paper gives the trunk (conv 4x4/2, conv 3x3/1, flatten, concatenate the ELI, FC 512,
+    concatenate the goal vector) and leaves the heads open. Here the goal features
+    (:func:`planner_goal_features`) also enter the FC layer, so that map and goal interact,
+    and each head is an MLP (``head_hidden`` units) over (trunk, goal features). With linear
+    heads on (distance, cos, sin), as the text reads literally, the sub-goal direction cannot
+    follow the goal's, and a planner trained over the oracle executor reached success 0.00
+    where these heads reached 0.83 (docs/results.md).
+
+    The heads answer relative to the goal and start goal-directed:
+    - sub-goal mean = (min(goal distance, ``prior_distance``), goal direction) + the head's
+      output, so an untrained planner points at the goal, ``prior_distance`` (1.5 m: what the
+      executor can reach in N_EX = 10 actions) away at most, and directions wrap round the
+      goal's direction rather than round +-pi;
+    - stop logits = the head's output + a linear skip from the goal features, started so that
+      p(stop) is ~0.5 at 0.1 m, ~0.12 at 0.2 m and below 2% beyond 0.3 m.
 
     Sub-goal action: the policy samples an *unbounded* raw (rho, theta) from two Gaussians
-    with state-dependent means and state-independent learnable log-stds. The raw sample is
-    what the rollout buffer stores and what ``log_prob`` is computed on; only the copy sent
-    to the environment is mapped into the action box by ``subgoal_to_env``: rho is clipped
-    to [0, rho_max] and theta is wrapped to [-pi, pi] (wrapping, unlike clipping, keeps the
-    direction the sample points to).
-
-    ``goal_prior`` (``--planner-goal-prior``; off by default, as it learnt worse than the
-    plain heads in our measurements, README) starts the planner goal-directed. The sub-goal
-    head becomes residual on the goal vector: mean = (min(goal distance,
-    ``prior_distance``), goal direction clipped to +-``prior_angle``) + the head's output.
-    The defaults, 1.5 m and 0.5 rad, are what the executor can reach in N_EX = 10 actions
-    (3 turns of 10 deg, 6 moves of 0.25 m, STOP). The stop head starts to fire near the
-    goal (p(stop) ~0.5 at 0.1 m, ~0.12 at 0.2 m, <2% past 0.3 m). The layers and
-    distributions are the paper's; only the starting point differs.
-
-    ``stop_within`` (m, default None: the paper's planner) masks the stop action while the
-    planner's own goal reading is farther than that: the policy can then only end an
-    episode near the goal, and cannot fall into the early-stop optimum.
+    with state-dependent means and state-independent learnable log-stds (started at std
+    ``init_std``). The raw sample is what the rollout buffer stores and what ``log_prob`` is
+    computed on; only the copy sent to the environment is mapped into the action box by
+    ``subgoal_to_env``: rho is clipped to [0, rho_max] and theta is wrapped to [-pi, pi]
+    (wrapping, unlike clipping, keeps the direction the sample points to).
     """
 
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
-                 map_size: int = 32, init_log_std: float | None = None, init_stop_prob: float = 0.02,
-                 goal_prior: bool = False, prior_distance: float = 1.5, prior_angle: float = 0.5,
-                 stop_within: float | None = None, heads: str = "mlp", head_hidden: int = 256):
+                 map_size: int = 32, init_std: float = 0.5, prior_distance: float = 1.5, head_hidden: int = 256):
         super().__init__()
-        if heads not in ("linear", "mlp"):
-            raise ValueError(f"heads must be 'linear' or 'mlp', got {heads!r}")
-        self.eli_dim, self.use_eli, self.rho_max, self.goal_prior = eli_dim, use_eli, rho_max, goal_prior
-        self.prior_distance, self.prior_angle = min(prior_distance, rho_max), prior_angle
-        self.stop_within, self.heads = stop_within, heads
+        self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
+        self.prior_distance = min(prior_distance, rho_max)
         self.convs = nn.Sequential(
             layer_init(nn.Conv2d(ego_channels, channels[0], 4, stride=2)), nn.ReLU(),
             layer_init(nn.Conv2d(channels[0], channels[1], 3, stride=1)), nn.ReLU(),
             nn.Flatten(),
         )
         n_flat = _conv_out_dim(self.convs, (ego_channels, map_size, map_size))
-        goal_dim = 3 if heads == "linear" else GOAL_FEATURES
-        trunk_in = n_flat + eli_dim + (goal_dim if heads == "mlp" else 0)
-        self.fc = nn.Sequential(layer_init(nn.Linear(trunk_in, hidden)), nn.ReLU())
-        feat = hidden + goal_dim  # + encoded goal
-        if heads == "mlp":
-            # The goal enters the trunk too, and each head is a small MLP over (trunk, goal),
-            # so that map and goal interact and the sub-goal can follow the goal's direction.
-            def mlp(out, std):
-                return nn.Sequential(layer_init(nn.Linear(feat, head_hidden)), nn.ReLU(),
-                                     layer_init(nn.Linear(head_hidden, out), std=std))
-            self.stop_logits, self.subgoal_mean, self.critic = mlp(2, 0.01), mlp(2, 0.01), mlp(1, 1.0)
-            # A linear skip from the goal features to the stop logits, started so that the
-            # planner tends to stop near the goal: p(stop) ~0.5 at 0.1 m, ~0.12 at 0.2 m,
-            # < 2% beyond 0.3 m (the feature min(d, 2) has index 4).
-            self.stop_skip = nn.Linear(goal_dim, 2)
-        else:
-            self.stop_logits = layer_init(nn.Linear(feat, 2), std=0.01)
-            self.subgoal_mean = layer_init(nn.Linear(feat, 2), std=0.01)
-            self.critic = layer_init(nn.Linear(feat, 1), std=1.0)
-        stop_out = self.stop_logits if heads == "linear" else self.stop_logits[-1]
-        mean_out = self.subgoal_mean if heads == "linear" else self.subgoal_mean[-1]
-        # Start with sub-goals half-way out (rho ~ rho_max / 2) rather than at the agent.
-        with torch.no_grad():
-            mean_out.bias[0] = rho_max / 2
-            # An untrained planner that stops half the time ends most episodes after one or
-            # two decisions, before the executor has acted; start with rare stops instead.
-            stop_out.bias[1] = math.log(init_stop_prob / (1 - init_stop_prob))
-            if heads == "mlp":
-                mean_out.bias[0] = 0.0  # rho is relative to min(goal distance, prior_distance)
-                stop_out.bias.zero_()
-                self.stop_skip.weight.zero_()
-                self.stop_skip.bias.zero_()
-                self.stop_skip.weight[1, 4] = -20.0
-                self.stop_skip.bias[1] = 2.0
-            if goal_prior:
-                if heads != "linear":
-                    raise ValueError("goal_prior is defined for the linear heads")
-                mean_out.bias[0] = 0.0  # the prior already puts rho at min(d, prior_distance)
-                # stop logit - continue logit ~ 2 - 20 * goal distance (feature `hidden` is the distance)
-                stop_out.weight[1, hidden] = -20.0
-                stop_out.bias[1] = 2.0
-        if init_log_std is None:  # std 1 (m, rad) for the plain heads; 0.5 around the goal-relative mean
-            init_log_std = 0.0 if heads == "linear" else math.log(0.5)
-        self.subgoal_log_std = nn.Parameter(torch.full((2,), float(init_log_std)))
+        self.fc = nn.Sequential(layer_init(nn.Linear(n_flat + eli_dim + GOAL_FEATURES, hidden)), nn.ReLU())
+        feat = hidden + GOAL_FEATURES
 
-    def _goal(self, goal: torch.Tensor) -> torch.Tensor:
-        return encode_polar(goal) if self.heads == "linear" else planner_goal_features(goal)
+        def mlp(out, std):
+            return nn.Sequential(layer_init(nn.Linear(feat, head_hidden)), nn.ReLU(),
+                                 layer_init(nn.Linear(head_hidden, out), std=std))
+
+        self.stop_logits, self.subgoal_mean, self.critic = mlp(2, 0.01), mlp(2, 0.01), mlp(1, 1.0)
+        self.stop_skip = nn.Linear(GOAL_FEATURES, 2)
+        with torch.no_grad():
+            self.stop_skip.weight.zero_()
+            self.stop_skip.bias.zero_()
+            # stop logit - continue logit ~ 2 - 20 * min(goal distance, 2) (goal feature 4)
+            self.stop_skip.weight[1, 4] = -20.0
+            self.stop_skip.bias[1] = 2.0
+        self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
 
     def features(self, obs: dict) -> torch.Tensor:
+        """(B, hidden + GOAL_FEATURES): the trunk's output and the goal features."""
         dev = self.convs[0].weight.device
         ego = _as_tensor(obs["ego_map"], dev, torch.float32)
-        goal = self._goal(_as_tensor(obs["goal"], dev, torch.float32))
+        goal = planner_goal_features(_as_tensor(obs["goal"], dev, torch.float32))
         if self.use_eli:
             # Stop-gradient (paper 3, SPEC 5): the planner's loss must never reach the
             # executor's parameters, so the ELI always enters the planner detached.
             eli = _as_tensor(obs["eli"], dev, torch.float32).detach()
         else:
             eli = torch.zeros(ego.shape[0], self.eli_dim, device=dev)
-        x = [self.convs(ego), eli] + ([goal] if self.heads == "mlp" else [])
-        h = self.fc(torch.cat(x, dim=1))
+        h = self.fc(torch.cat([self.convs(ego), eli, goal], dim=1))
         return torch.cat([h, goal], dim=1)
 
     def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
         """(stop distribution, sub-goal distribution over raw (rho, theta), value (B,))."""
         h = self.features(obs)
-        logits = self.stop_logits(h)
-        goal = _as_tensor(obs["goal"], logits.device, torch.float32)
-        if self.heads == "mlp":
-            logits = logits + self.stop_skip(h[:, -GOAL_FEATURES:])
-        if self.stop_within is not None:
-            # the stop action is masked out while the goal reads farther than stop_within
-            far = goal[:, 0] > self.stop_within
-            logits = torch.stack([logits[:, 0], logits[:, 1].masked_fill(far, -1e9)], dim=1)
-        stop = Categorical(logits=logits)
-        mean = self.subgoal_mean(h)
-        if self.heads == "mlp":
-            # The sub-goal head answers relative to the goal: its zero output is a sub-goal
-            # towards the goal, at the goal when it is within prior_distance; directions
-            # then wrap round the goal's direction, not round +-pi.
-            mean = mean + torch.stack([goal[:, 0].clamp(max=self.prior_distance), goal[:, 1]], dim=1)
-        if self.goal_prior:
-            prior = torch.stack([goal[:, 0].clamp(max=self.prior_distance),
-                                 goal[:, 1].clamp(-self.prior_angle, self.prior_angle)], dim=1)
-            mean = mean + prior
+        goal = _as_tensor(obs["goal"], h.device, torch.float32)
+        stop = Categorical(logits=self.stop_logits(h) + self.stop_skip(h[:, -GOAL_FEATURES:]))
+        prior = torch.stack([goal[:, 0].clamp(max=self.prior_distance), goal[:, 1]], dim=1)
+        mean = self.subgoal_mean(h) + prior
         subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
         return stop, subgoal, self.critic(h).squeeze(-1)
 

@@ -111,7 +111,7 @@ def test_planner_without_eli_ignores_it():
 
 def test_planner_actions():
     torch.manual_seed(0)
-    pl = Planner(rho_max=4.0, init_log_std=1.5, channels=(8, 8), hidden=64)  # wide std: samples leave the box
+    pl = Planner(rho_max=4.0, init_std=math.exp(1.5), channels=(8, 8), hidden=64)  # wide std: samples leave the box
     obs = pl.example_obs(256)
     out = pl.act(obs)
     assert out["stop"].shape == (256,) and out["subgoal"].shape == out["subgoal_env"].shape == (256, 2)
@@ -134,9 +134,6 @@ def test_planner_actions():
     assert edge[2, 1].item() == pytest.approx(-math.pi / 2)
     det = pl.act(obs, deterministic=True)  # goal-relative heads: at min(goal distance, 1.5 m) to start with
     torch.testing.assert_close(det["subgoal"][:, 0], obs["goal"][:, 0].clamp(max=1.5), atol=0.1, rtol=0)
-    linear = Planner(rho_max=4.0, channels=(8, 8), hidden=64, heads="linear")
-    det = linear.act(obs, deterministic=True)
-    torch.testing.assert_close(det["subgoal"][:, 0].mean(), torch.tensor(2.0), atol=0.1, rtol=0)  # starts mid-range
 
 
 @pytest.mark.parametrize("resolution", [64, 128])
@@ -186,11 +183,6 @@ def test_orthogonal_init(planner):
     _assert_orthogonal(pl.critic[-1].weight, 1.0)
     assert torch.all(ex.actor.bias == 0) and torch.all(ex.encoder.convs[0].bias == 0)
     assert pl.subgoal_mean[-1].bias.tolist() == [0.0, 0.0]  # relative to (min(goal distance, 1.5 m), goal direction)
-    linear = Planner(heads="linear")
-    _assert_orthogonal(linear.stop_logits.weight, 0.01)
-    _assert_orthogonal(linear.subgoal_mean.weight, 0.01)
-    _assert_orthogonal(linear.critic.weight, 1.0)
-    assert linear.subgoal_mean.bias.tolist() == [2.0, 0.0]
 
 
 def test_flops_and_matmul_speed(planner):
@@ -206,9 +198,8 @@ def test_flops_and_matmul_speed(planner):
 
 
 def test_planner_heads_start_goal_relative():
-    """The default (mlp) heads start goal-relative: an untrained planner's mean sub-goal is
-    (min(d, 1.5 m), the goal's direction) whatever the map, it stops near the goal and
-    rarely elsewhere; the paper's linear heads (and goal_prior on them) start straight ahead."""
+    """The heads start goal-relative: an untrained planner's mean sub-goal is (min(d, 1.5 m),
+    the goal's direction) whatever the map, it stops near the goal and rarely elsewhere."""
     torch.manual_seed(0)
     pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64)
     obs = pl.example_obs(64)
@@ -219,23 +210,8 @@ def test_planner_heads_start_goal_relative():
     p_stop = stop_d.probs[:, 1]
     d = obs["goal"][:, 0]
     assert (p_stop[d < 0.1] > 0.4).all() and (p_stop[d > 0.3] < 0.02).all()
-    prior = Planner(rho_max=4.0, channels=(8, 8), hidden=64, heads="linear", goal_prior=True)
-    torch.testing.assert_close(prior(obs)[1].mean[:, 1], obs["goal"][:, 1].clamp(-0.5, 0.5), atol=0.05, rtol=0)
-    plain = Planner(rho_max=4.0, channels=(8, 8), hidden=64, heads="linear")
-    mean = plain(obs)[1].mean
-    assert mean[:, 1].abs().max() < 0.2  # straight ahead whatever the goal's direction
+    # the map and the ELI move the heads' output away from the goal-directed start only by learning
+    obs["ego_map"] = torch.rand_like(obs["ego_map"])
+    torch.testing.assert_close(pl(obs)[1].mean[:, 1], obs["goal"][:, 1], atol=0.05, rtol=0)
 
 
-def test_planner_stop_within_masks_far_stops():
-    """--planner-stop-within: no stop is ever sampled (or has probability) while the goal
-    reads farther; near the goal the stop head is untouched, and log-probs stay finite."""
-    torch.manual_seed(0)
-    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64, stop_within=1.0, init_stop_prob=0.5, heads="linear")
-    obs = pl.example_obs(200)
-    obs["goal"][:, 0] = torch.linspace(0.0, 4.0, 200)
-    far = obs["goal"][:, 0] > 1.0
-    stop_d, _, _ = pl(obs)
-    assert (stop_d.probs[far, 1] == 0).all() and (stop_d.probs[~far, 1] > 0.3).all()
-    out = pl.act(obs)
-    assert (out["stop"][far] == 0).all() and out["stop"][~far].any()
-    assert torch.isfinite(pl.evaluate_actions(obs, out["stop"], out["subgoal"])[0]).all()

@@ -43,13 +43,11 @@ from .ppo import PPOConfig, RolloutBuffer, compute_gae, ppo_update
 
 CHECKPOINT_FORMAT = 1
 # Config fields added after checkpoints were first written, with the value older ones had.
-LEGACY_CONFIG = {"planner_goal_prior": False, "planner_stop_within": None, "planner_heads": "linear",
-                 "executor_goal_skip": False}
+LEGACY_CONFIG = {"executor_goal_skip": False}
 
 
 # The settings that shape the networks: a checkpoint loads only into a run with the same.
-ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "planner_goal_prior",
-             "planner_stop_within", "planner_heads", "executor_goal_skip")
+ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_goal_skip")
 
 
 def saved_config(state: dict) -> dict:
@@ -72,8 +70,7 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     """The networks of a method: {'planner', 'executor'} for PLEX, {'policy'} for flat PPO."""
     memory = cfg.method.split("-")[1]
     if cfg.method.startswith("plex"):
-        return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max, goal_prior=cfg.planner_goal_prior,
-                                   stop_within=cfg.planner_stop_within, heads=cfg.planner_heads),
+        return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max),
                 "executor": Executor(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip)}
     return {"policy": FlatPolicy(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
@@ -148,6 +145,9 @@ class Trainer:
         if state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}")
         saved = saved_config(state)
+        planner = state.get("models", {}).get("planner")
+        if isinstance(planner, dict) and "stop_skip.weight" not in planner:
+            raise CheckpointError(f"{what} holds a planner with the linear heads, which plex-ma no longer has")
         for key in ARCH_KEYS:
             if saved.get(key) != getattr(self.cfg, key):
                 raise CheckpointError(f"{what} has {key}={saved.get(key)!r} but this run asks for "
