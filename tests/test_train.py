@@ -222,25 +222,25 @@ def test_warmup_on_other_scenes_then_training_scenes(tmp_path):
 
 
 @pytest.mark.slow
-def test_plex_planner_return_improves(tmp_path):
-    """PLEX end to end in an open room (60-step episodes): after 2k steps of executor
-    warm-up, the planner's return (the episode reward) rises from about -0.8 (sub-goals that
-    lead nowhere: slack and little progress) to above 0, i.e. above what stopping at once
-    earns, within 12k steps."""
+def test_plex_learns_to_reach_the_goal(tmp_path):
+    """PLEX end to end with the cpu preset's recipe in an open room (100-step episodes, 8
+    worlds): 6k steps of executor warm-up under the oracle planner, then both agents learn.
+    No episode succeeds at first (reward below 0: slack and collisions); by 20k steps (about
+    a minute of two cores) at least 5% of the last 100 training episodes (sampled actions)
+    succeed and their reward is above 2 (measured: 0.14-0.17 and 4.0-4.6)."""
     cfg = dataclasses.replace(
-        preset_defaults("smoke"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1,
-        resolution=64, executor_hidden=64, lr=1e-3, max_steps=60, total_steps=12_000, num_envs=8, rollout_steps=32,
-        n_pl=8, ppo_epochs=4, num_minibatches=2, progress=False, torch_threads=1, checkpoint_interval=1000,
-        planner_warmup_steps=2_000, random_subgoal_distance=1.5, random_subgoal_angle=3.14)
+        preset_defaults("cpu"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1, max_steps=100,
+        num_envs=8, rollout_steps=32, planner_warmup_steps=6_000, total_steps=20_000, progress=False,
+        checkpoint_interval=1000, record_interval=0)
     t = make_trainer(validate(cfg))
     t.train()
     t.close()
     lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    learning = [d["reward"] for d in lines if d["step"] > cfg.planner_warmup_steps and "reward" in d]
+    episodes = [d for d in lines if "reward" in d]
+    assert episodes[0]["reward"] < 0 and episodes[0]["metrics/success"] == 0, episodes[0]
     assert t.updates["planner"] >= 10
-    early, late = np.mean(learning[:3]), np.mean(learning[-5:])
-    assert early < -0.4, learning[:5]
-    assert late > 0.0 and late - early > 0.5, (early, learning[-8:])
+    last = episodes[-1]
+    assert last["metrics/success"] >= 0.05 and last["reward"] > 2.0, last
 
 
 def test_training_counts_episodes_ended_by_planner_stop(tmp_path):
