@@ -22,8 +22,6 @@ class TrainConfig:
     """plex-gru / plex-smt (the paper's PLEX LSTM / SMT) or the flat baselines ppo-gru / ppo-smt"""
     eli: bool = True
     """pass the executor's ELI to the planner (--no-eli: the paper's ablation)"""
-    planner_goal_channel: bool = False
-    """PLEX only: the planner's CNN also sees the goal drawn into the ego map as a third channel (made inside the network from the goal vector)"""
     planner: Literal["learn", "random", "oracle"] = "learn"
     """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping) or under the shortest-path oracle planner (ground truth)"""
     executor: Literal["learn", "oracle"] = "learn"

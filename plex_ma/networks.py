@@ -60,21 +60,6 @@ def planner_goal_features(goal: torch.Tensor) -> torch.Tensor:
     return torch.stack([d / 10, torch.cos(th), torch.sin(th), torch.exp(-d / 0.5), d.clamp(max=2.0)], dim=-1)
 
 
-def goal_map(goal: torch.Tensor, size: int = 32, cell: float = 0.5, sigma: float = 1.0) -> torch.Tensor:
-    """(B, 2) goal (distance m, direction rad) -> (B, 1, size, size): the goal drawn into the
-    ego map's frame (row 0 ahead, column 0 to the left, the agent at the centre, ``cell`` m
-    per cell) as a Gaussian blob of ``sigma`` m, at the map's border along the goal's
-    direction when the goal lies beyond it."""
-    d, th = goal[:, 0], goal[:, 1]
-    fwd, left = d * torch.cos(th), d * torch.sin(th)
-    half = size * cell / 2 - cell / 2
-    scale = (half / torch.maximum(fwd.abs(), left.abs()).clamp(min=1e-6)).clamp(max=1.0)
-    fwd, left = fwd * scale, left * scale
-    c = (size / 2 - torch.arange(size, device=goal.device, dtype=goal.dtype) - 0.5) * cell  # cell centres
-    dist2 = (c[None, :, None] - fwd[:, None, None]) ** 2 + (c[None, None, :] - left[:, None, None]) ** 2
-    return torch.exp(-dist2 / (2 * sigma ** 2))[:, None]
-
-
 def _as_tensor(x, device: torch.device, dtype: torch.dtype | None = None) -> torch.Tensor:
     if isinstance(x, np.ndarray):
         x = torch.from_numpy(x)
@@ -119,12 +104,9 @@ class Planner(nn.Module):
 
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
-                 map_size: int = 32, init_std: float = 0.5, prior_distance: float = 1.5, head_hidden: int = 256,
-                 goal_channel: bool = False):
+                 map_size: int = 32, init_std: float = 0.5, prior_distance: float = 1.5, head_hidden: int = 256):
         super().__init__()
-        self.eli_dim, self.use_eli, self.rho_max, self.goal_channel = eli_dim, use_eli, rho_max, goal_channel
-        self.map_size = map_size
-        ego_channels += int(goal_channel)
+        self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
         self.prior_distance = min(prior_distance, rho_max)
         self.convs = nn.Sequential(
             layer_init(nn.Conv2d(ego_channels, channels[0], 4, stride=2)), nn.ReLU(),
@@ -153,10 +135,7 @@ class Planner(nn.Module):
         """(B, hidden + GOAL_FEATURES): the trunk's output and the goal features."""
         dev = self.convs[0].weight.device
         ego = _as_tensor(obs["ego_map"], dev, torch.float32)
-        raw_goal = _as_tensor(obs["goal"], dev, torch.float32)
-        goal = planner_goal_features(raw_goal)
-        if self.goal_channel:
-            ego = torch.cat([ego, goal_map(raw_goal, self.map_size)], dim=1)
+        goal = planner_goal_features(_as_tensor(obs["goal"], dev, torch.float32))
         if self.use_eli:
             # Stop-gradient (paper 3, SPEC 5): the planner's loss must never reach the
             # executor's parameters, so the ELI always enters the planner detached.
@@ -213,7 +192,7 @@ class Planner(nn.Module):
         return log_prob, entropy, value
 
     def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
-        c, s = self.convs[0].in_channels - int(self.goal_channel), 32
+        c, s = self.convs[0].in_channels, 32
         return {"ego_map": torch.rand(batch, c, s, s, generator=generator),
                 "goal": torch.rand(batch, 2, generator=generator) * torch.tensor([10.0, 2 * math.pi]) - torch.tensor([0.0, math.pi]),
                 "eli": torch.randn(batch, self.eli_dim, generator=generator)}

@@ -215,19 +215,3 @@ def test_planner_heads_start_goal_relative():
     torch.testing.assert_close(pl(obs)[1].mean[:, 1], obs["goal"][:, 1], atol=0.05, rtol=0)
 
 
-
-
-def test_goal_map_draws_the_goal_in_the_ego_frame():
-    """The planner's optional goal channel: row 0 ahead, column 0 to the left, the agent at
-    the centre (as the env's ego map); a far goal sits on the border along its direction."""
-    from plex_ma.networks import goal_map
-
-    g = torch.tensor([[2.0, 0.0], [2.0, math.pi / 2], [30.0, math.pi], [30.0, -math.pi / 4]])
-    m = goal_map(g)[:, 0]
-    peaks = [divmod(int(x.argmax()), 32) for x in m]
-    assert peaks[0][0] in (11, 12) and peaks[0][1] in (15, 16)  # 2 m ahead: 4 cells above the centre
-    assert peaks[1][1] in (11, 12) and peaks[1][0] in (15, 16)  # 2 m to the left
-    assert peaks[2][0] == 31  # far behind: the bottom row
-    assert peaks[3][0] == 0 and peaks[3][1] == 31  # far ahead-right: the top-right corner
-    pl = Planner(channels=(8, 8), hidden=64, goal_channel=True)
-    assert pl.convs[0].in_channels == 3 and pl(pl.example_obs(2))[2].shape == (2,)
