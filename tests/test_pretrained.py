@@ -1,0 +1,58 @@
+"""The agents shipped in the package: pretrained:NAME loads, acts, fine-tunes, and bad
+names or files fail clearly."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from plex_ma.config import preset_defaults, validate
+from plex_ma.evaluate import load_policies, run_episodes
+from plex_ma.trainers.checkpoint import CheckpointError, export_pretrained, load_checkpoint, pretrained_names
+from plex_ma.trainers.plex import make_trainer
+
+
+def test_shipped_agents_are_small_and_say_how_they_were_trained():
+    assert {"plex-gru", "ppo-gru"} <= set(pretrained_names())
+    for name in ("plex-gru", "ppo-gru"):
+        st = load_checkpoint(f"pretrained:{name}")
+        assert st["pretrained"] and "python -m plex_ma.train" in st["command"]
+        assert st["config"]["method"] == name and st["step"] > 0
+        for sd in st["models"].values():  # loaded back as float32
+            assert all(t.dtype == torch.float32 for t in sd.values() if t.is_floating_point())
+
+
+def test_pretrained_plex_gru_runs_an_episode():
+    cfg, nets = load_policies("pretrained:plex-gru")
+    [res] = run_episodes(cfg, nets, split="val", episodes=1, num_envs=1)
+    assert res["steps"] >= 1 and 0.0 <= res["success"] <= 1.0
+
+
+def test_unknown_pretrained_name_and_fine_tuning(tmp_path):
+    with pytest.raises(CheckpointError, match="no pretrained agent 'nope'"):
+        load_checkpoint("pretrained:nope")
+    cfg = dataclasses.replace(preset_defaults("cpu", "ppo-gru"), run_dir=str(tmp_path / "ft"), total_steps=64,
+                              num_envs=2, rollout_steps=16, progress=False, record_interval=0,
+                              checkpoint="pretrained:ppo-gru")
+    t = make_trainer(validate(cfg))
+    shipped = load_checkpoint("pretrained:ppo-gru")["models"]["policy"]
+    for k, v in t.nets["policy"].state_dict().items():
+        torch.testing.assert_close(v, shipped[k])  # starts from the shipped weights
+    assert t.step == 0
+    t.close()
+    bad = dataclasses.replace(cfg, run_dir=str(tmp_path / "bad"), executor_hidden=64)
+    with pytest.raises(CheckpointError, match="executor_hidden"):
+        make_trainer(validate(bad))
+
+
+def test_export_round_trip(tmp_path):
+    src = tmp_path / "src.pt"
+    st = load_checkpoint("pretrained:ppo-gru")
+    torch.save({**st, "pretrained": False}, src)
+    out = export_pretrained(src, tmp_path / "x.pt", "cmd", {"note": 1})
+    back = load_checkpoint(out)
+    assert back["command"] == "cmd" and back["notes"] == {"note": 1}
+    for k, v in st["models"]["policy"].items():
+        torch.testing.assert_close(back["models"]["policy"][k], v, atol=1e-2, rtol=1e-2)
