@@ -17,8 +17,9 @@ $(VENV)/.installed: pyproject.toml
 setup: $(VENV)/.installed
 
 # The main job: a short PLEX-GRU training with the cpu preset on the default procedural
-# scenes, then a greedy evaluation on 100 fixed validation episodes.
-TRAIN_STEPS ?= 100000
+# scenes (the run that pretrained:plex-gru comes from), then a greedy evaluation on 100
+# fixed validation episodes.
+TRAIN_STEPS ?= 120000
 RUN_DIR ?= runs/quickstart
 train: $(VENV)/.installed
 	$(PY) -m plex_ma.train --preset cpu --method plex-gru --total-steps $(TRAIN_STEPS) --run-dir $(RUN_DIR)
