@@ -1,12 +1,12 @@
 """Independent PPO for PLEX (paper Algorithms 1 and 2) and flat PPO for the baselines.
 
-PLEX, per iteration:
+PLEX runs through the rollout driver (:mod:`.driver`), per iteration:
 
-1. *Planner decisions.* Every world whose turn is the planner's gets a decision (stop, or a
-   sub-goal). A stop ends that world's episode and a new one starts, which needs another
-   decision, so this repeats until every world is in an executor turn.
-2. *One executor step* in all N worlds at once. The executor's memory restarts at the
-   first step of every turn (the env's ``executor_memory_restart`` hint).
+1. *Planner decisions* (``PlexDriver.decide``). Every world whose turn is the planner's gets
+   a decision (stop, or a sub-goal). A stop ends that world's episode and a new one starts,
+   which needs another decision, so this repeats until every world is in an executor turn.
+2. *One executor step* in all N worlds at once (``PlexDriver.step``). The executor's memory
+   restarts at the first step of every turn (the env's ``executor_memory_restart`` hint).
 3. After ``rollout_steps`` executor steps: a PPO update of the executor on its own rewards
    (gamma_EX per executor step). An executor turn ends at its STOP (terminal), at its
    N_EX-th action (a truncation: bootstrap from V of the observation after it, with the
@@ -14,6 +14,11 @@ PLEX, per iteration:
 4. Each planner decision is one transition whose reward is everything the planner earned
    until its next decision (gamma_PL per decision). Once N_PL decisions per world have
    completed, a PPO update of the planner.
+
+Either agent can be a stand-in that is not trained (``--planner random|oracle``,
+``--executor oracle``: the shortest-path oracles use ground truth). During the first
+``planner_warmup_steps`` steps the ``warmup_planner`` stands in (on ``warmup_scenes`` if
+given) and only the executor learns.
 
 Stop-gradient: the ELI reaches the planner through the environment as a plain array, and
 the planner detaches it again inside its forward pass; the planner's optimiser holds only
