@@ -126,15 +126,15 @@ PRESETS: dict[str, dict] = {
                   checkpoint_interval=5, ppo_epochs=2),
     # What learns best per CPU hour on this machine (docs/results.md: each deviation from the
     # paper with the measurement behind it). A 128-unit executor GRU (at 512 the GRU is half
-    # of the update's FLOPs) and lr 1e-3 for the executor, 5e-5 for the planner (at 2.5e-4,
-    # the paper's, joint training wore its goal-directed start down faster); a -0.5 executor reward for a STOP short of its sub-goal (without it the
+    # of the update's FLOPs) and lr 1e-3 for the executor, 2.5e-4 (the paper's) for the
+    # planner; a -0.5 executor reward for a STOP short of its sub-goal (without it the
     # executor's STOP was a free exit and its policy collapsed onto it); planner updates every
     # 8 decisions per world (N_PL = 8); and 40k steps of executor warm-up in an open room under
     # random sub-goals 1.5 m away in any direction (40-step episodes), which teaches it to
     # turn both ways (under the oracle planner's sub-goals, nearly always ahead, it learnt to
     # turn left only).
     "cpu": dict(total_steps=2_000_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=8, torch_threads=1,
-                executor_hidden=128, lr=1e-3, planner_lr=5e-5, planner_warmup_steps=40_000,
+                executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_warmup_steps=40_000,
                 warmup_scenes="open-room", random_subgoal_distance=1.5, random_subgoal_angle=3.14,
                 executor_stop_penalty=-0.5),
     # The paper's settings: 256 px images, N_PL = 128, 30M steps.
