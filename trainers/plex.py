@@ -383,13 +383,12 @@ class PlexTrainer(Trainer):
             _, value, _, _ = self.executor(obs, state, torch.zeros(len(state), dtype=torch.bool))
         return value.numpy()
 
-    def _bootstrap(self, res, state) -> np.ndarray:
+    def _bootstrap(self, res, state, trunc: np.ndarray) -> np.ndarray:
         """V(observation after the last action) of turns cut at N_EX or by max_steps, with
         the memory they had; for ended episodes that observation is the final one, as the
         world has already been reset."""
         n = self.cfg.num_envs
         ended = res.terminated | res.truncated
-        trunc = res.executor_turn_end & ~res.executor_stopped
         boot = np.zeros(n, np.float32)
         rows = np.flatnonzero(trunc & ~ended)
         if len(rows):
@@ -431,7 +430,7 @@ class PlexTrainer(Trainer):
                     buf.add(t, obs=s.obs, actions=torch.as_tensor(s.out["action"]), log_probs=s.out["log_prob"],
                             values=s.out["value"], rewards=torch.as_tensor(res.rewards[:, 1]),
                             dones=torch.as_tensor(res.executor_stopped), truncated=torch.as_tensor(trunc),
-                            starts=torch.as_tensor(s.starts), bootstrap_values=torch.as_tensor(self._bootstrap(res, s.state)))
+                            starts=torch.as_tensor(s.starts), bootstrap_values=torch.as_tensor(self._bootstrap(res, s.state, trunc)))
                 # Success over the turns whose sub-goal was not already within reach at the start.
                 counted = res.executor_turn_end & (self.turn_d0 >= self.env.config.subgoal_radius)
                 self.executor_success.extend(res.executor_reached[counted].tolist())
