@@ -14,7 +14,7 @@ env = plex_nav_v0.env(resolution=128)
 | Planner observation | `Dict(ego_map=Box(0, 1, (2, 32, 32)), goal=Box((2,)), eli=Box((128,)))` |
 | Executor action | `Dict(action=Discrete(4), eli=Box((128,)))` |
 | Executor observation | `Dict(rgb=Box(0, 255, (H, W, 3), uint8), depth=Box(0, 1, (H, W, 1)), subgoal=Box((2,)))` |
-| Render modes | `rgb_array` (top-down map, path, goal, current sub-goal) |
+| Render modes | `human` (a live window), `rgb_array` (top-down map, path, goal, current sub-goal) |
 | `is_parallelizable` | False |
 
 Two cooperating agents navigate to a PointGoal in an indoor scene (the PLEX paper's
@@ -54,9 +54,38 @@ the paper). A success is a planner stop with the geodesic distance to the goal b
 
 A planner stop terminates both agents; 500 executor actions truncate both. Each agent then
 takes one dead step (`step(None)`), as PettingZoo requires; a step after that raises
-`InvalidAction` (call `reset()`). `infos[agent]` carries
-`scene_id`, `episode_id`, `geodesic_distance` (start to goal), `distance_to_goal`,
-`collisions`, `steps` (executor actions so far), and at the end `success` and `spl`.
+`InvalidAction` (call `reset()`).
+
+## Infos
+
+`infos[agent]` is the same for both agents and has the same keys from `reset` to the
+end, every value a Python number, so trainers that build a fixed spec from the first
+infos (TorchRL's `PettingZooWrapper`) can read every step:
+
+| key | type | meaning |
+|---|---|---|
+| `scene_index` | int | the scene, as an index into `env.unwrapped.scene_ids` |
+| `episode_id` | int | the episode's id in its episode file (0 for sampled training episodes) |
+| `geodesic_distance` | float | start to goal (m) |
+| `distance_to_goal` | float | now (m, geodesic) |
+| `collisions` | int | blocked moves so far |
+| `steps` | int | executor actions so far |
+| `success` | float | 1.0 after a successful stop, else 0.0 (0.0 until the episode ends) |
+| `spl` | float | the episode's SPL once it has ended, else 0.0 |
+
+The scene's string id is `env.unwrapped.scene_id` (also `env.scene_id` through the
+PettingZoo wrappers), and `env.unwrapped.episode` is the current episode (start, goal,
+ids).
+
+## Rendering
+
+`render_mode="rgb_array"`: `render()` returns the top-down view, an (H, W, 3) uint8
+array: walls and furniture, the path so far, the goal, the agent, and the current
+sub-goal (as proposed and as snapped). `render_mode="human"`: the same view in a
+matplotlib window, redrawn after every `reset` and `step` at `metadata["render_fps"]`
+(10) frames per second; `render()` returns None. Without a display or without
+matplotlib, the human mode gives one `UserWarning` and shows nothing; the env runs on
+unchanged (`pettingzoo.test.render_test` passes headless).
 
 ## Arguments
 
@@ -75,7 +104,7 @@ takes one dead step (`step(None)`), as PettingZoo requires; a step after that ra
 | `slack_reward`, `collision_reward`, `success_reward`, `subgoal_reward` | -0.01, -0.01, 10, 1 | reward weights |
 | `success_distance`, `subgoal_radius` | 0.2, 0.5 | metres |
 | `executor_memory_restart` | True | hint for trainers: restart the executor's memory with each sub-goal (`env.unwrapped.executor_memory_restart`) |
-| `render_mode` | None | "rgb_array" |
+| `render_mode` | None | "human" or "rgb_array" (see Rendering) |
 
 ## Why `is_parallelizable` is False, and `max_cycles_test`
 
@@ -103,6 +132,11 @@ every SuperSuit wrapper and what it does here.
 
 * v0: initial release. (Before the first release the executor's STOP bonus was also paid
   for sub-goals set already within reach; see Rewards.)
+* v0, infos and rendering: infos hold numbers only, with the same keys from `reset` on
+  (`scene_index` in place of the string `scene_id`, which moved to `env.unwrapped.scene_id`;
+  `success` and `spl` read 0.0 until the end), and the `human` render mode. Observations,
+  actions, rewards and episodes are unchanged, so results stay comparable and the name
+  stays `plex_nav_v0`.
 """
 
 from __future__ import annotations
@@ -117,6 +151,7 @@ from pettingzoo.utils import wrappers
 from .rules import EXECUTOR, PLANNER, InvalidAction, PlexConfig, PlexWorlds, make_config
 from .sim.topdown import topdown_view
 from .spaces import executor_action_space, executor_observation_space, planner_action_space, planner_observation_space
+from .viewer import HumanViewer
 
 AGENTS = ["planner", "executor"]
 
@@ -141,14 +176,16 @@ class _OrderEnforcing(wrappers.OrderEnforcingWrapper):
 class raw_env(AECEnv, EzPickle):
     """The PLEX Planner/Executor environment; see the module docstring."""
 
-    metadata = {"name": "plex_nav_v0", "render_modes": ["rgb_array"], "is_parallelizable": False, "render_fps": 10}
+    metadata = {"name": "plex_nav_v0", "render_modes": ["human", "rgb_array"], "is_parallelizable": False,
+                "render_fps": 10}
 
     def __init__(self, render_mode: str | None = None, **config):
         EzPickle.__init__(self, render_mode=render_mode, **config)
         super().__init__()
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode must be None, 'human' or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
+        self._viewer = HumanViewer("plex_nav_v0", self.metadata["render_fps"]) if render_mode == "human" else None
         self.config: PlexConfig = make_config(PlexConfig, config)
         self.worlds = PlexWorlds(self.config, num_worlds=1)
         self.possible_agents = list(AGENTS)
@@ -160,6 +197,24 @@ class raw_env(AECEnv, EzPickle):
         self.executor_memory_restart = self.config.executor_memory_restart
         self._path: list[np.ndarray] = []
         self._seeded = False
+
+    @property
+    def scene_id(self) -> str:
+        """The string id of the current episode's scene (``infos[agent]["scene_index"]``
+        indexes :attr:`scene_ids`)."""
+        if self.worlds.sim.episodes[0] is None:
+            raise RuntimeError("no episode yet; call reset() first")
+        return self.worlds.scene_id(0)
+
+    @property
+    def scene_ids(self) -> list[str]:
+        """The scenes of this env's split, in ``scene_index`` order."""
+        return list(self.worlds.bank.scene_ids)
+
+    @property
+    def episode(self):
+        """The current :class:`~plex_ma.envs.sim.Episode` (start, goal, ids), or None before ``reset``."""
+        return self.worlds.sim.episodes[0]
 
     def observation_space(self, agent):
         return self.observation_spaces[agent]
@@ -187,6 +242,8 @@ class raw_env(AECEnv, EzPickle):
         self.infos = {a: dict(info) for a in AGENTS}
         self.agent_selection = "planner"
         self._path = [self.worlds.sim.pos[0].copy()]
+        if self._viewer is not None:
+            self._viewer.show(self._frame())
 
     def observe(self, agent):
         if agent == "planner":
@@ -230,13 +287,25 @@ class raw_env(AECEnv, EzPickle):
             self._deads_step_first()
         else:
             self.agent_selection = AGENTS[int(w.turn[0])]
+        if self._viewer is not None:
+            self._viewer.show(self._frame())
 
     def render(self):
+        """``rgb_array``: the top-down view as an (H, W, 3) uint8 array. ``human``: draws it in
+        the window (which every ``reset`` and ``step`` also does) and returns None."""
         if self.render_mode is None:
             import gymnasium
 
-            gymnasium.logger.warn("render() called without render_mode; create the env with render_mode='rgb_array'")
+            gymnasium.logger.warn("render() called without render_mode; create the env with "
+                                  "render_mode='rgb_array' or 'human'")
             return None
+        if self.render_mode == "human":
+            if self.worlds.sim.episodes[0] is not None:
+                self._viewer.show(self._frame())
+            return None
+        return self._frame()
+
+    def _frame(self) -> np.ndarray:
         w = self.worlds
         sim = w.sim
         grid = sim.bank.grids[int(sim.scene_idx[0])]
@@ -247,7 +316,8 @@ class raw_env(AECEnv, EzPickle):
                             agent_pose=(sim.pos[0, 0], sim.pos[0, 1], sim.heading[0]))
 
     def close(self) -> None:
-        pass
+        if self._viewer is not None:
+            self._viewer.close()
 
 
 def _unpack(action, agent: str, keys: tuple[str, str]):

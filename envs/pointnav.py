@@ -9,11 +9,16 @@ One agent in the same world, episodes, sensors and rewards as ``plex_nav_v0``.
 * Reward: decrease of geodesic distance to the goal - 0.01 slack - 0.01 per collision,
   +10 on success. STOP ends the episode (success when the geodesic distance is below
   0.2 m); ``max_steps`` (500) actions truncate it.
-* Info: ``scene_id``, ``episode_id``, ``geodesic_distance``, ``distance_to_goal``,
-  ``collisions``, ``steps``, and at the end ``success`` and ``spl``.
+* Info: the keys of ``plex_nav_v0``'s infos (its docstring's Infos table), from ``reset``
+  on and every value a number: ``scene_index``, ``episode_id``, ``geodesic_distance``,
+  ``distance_to_goal``, ``collisions``, ``steps``, ``success`` and ``spl`` (the last two
+  0.0 until the episode ends). The scene's string id is ``env.unwrapped.scene_id``;
+  ``scene_index`` indexes ``env.unwrapped.scene_ids``.
 
-Arguments: those of :class:`~plex_ma.envs.rules.NavConfig` plus ``render_mode``
-("rgb_array": top-down view). The batched version for trainers is
+Arguments: those of :class:`~plex_ma.envs.rules.NavConfig` plus ``render_mode``:
+"rgb_array" (``render()`` returns the top-down view) or "human" (the view in a live
+window after every ``reset`` and ``step``; one warning and nothing shown without a
+display, see :mod:`plex_ma.envs.viewer`). The batched version for trainers is
 :class:`~plex_ma.envs.vector.PointNavVectorEnv`.
 """
 
@@ -25,21 +30,40 @@ import numpy as np
 from .rules import NavConfig, PointNavWorlds, make_config
 from .sim.topdown import topdown_view
 from .spaces import pointnav_observation_space
+from .viewer import HumanViewer
 
 
 class PointNavEnv(gymnasium.Env):
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
 
     def __init__(self, render_mode: str | None = None, **config):
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode must be None, 'human' or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
+        self._viewer = HumanViewer("PointNav-v0", self.metadata["render_fps"]) if render_mode == "human" else None
         self.config: NavConfig = make_config(NavConfig, config)
         self.worlds = PointNavWorlds(self.config, 1)
         self.observation_space = pointnav_observation_space(self.config)
         self.action_space = gymnasium.spaces.Discrete(4)
         self._path: list[np.ndarray] = []
         self._seeded = False
+
+    @property
+    def scene_id(self) -> str:
+        """The string id of the current episode's scene (``scene_ids[info["scene_index"]]``)."""
+        if self.worlds.sim.episodes[0] is None:
+            raise RuntimeError("no episode yet; call reset() first")
+        return self.worlds.scene_id(0)
+
+    @property
+    def scene_ids(self) -> list[str]:
+        """The scenes of this env's split, in ``scene_index`` order."""
+        return list(self.worlds.bank.scene_ids)
+
+    @property
+    def episode(self):
+        """The current :class:`~plex_ma.envs.sim.Episode`, or None before ``reset``."""
+        return self.worlds.sim.episodes[0]
 
     def _obs(self) -> dict:
         return {k: v[0] for k, v in self.worlds.obs([0]).items()}
@@ -52,6 +76,8 @@ class PointNavEnv(gymnasium.Env):
         episodes = [options["episode"]] if options and "episode" in options else None
         self.worlds.reset_rows([0], episodes)
         self._path = [self.worlds.sim.pos[0].copy()]
+        if self._viewer is not None:
+            self._viewer.show(self._frame())
         return self._obs(), self.worlds.info(0)
 
     def step(self, action):
@@ -61,11 +87,23 @@ class PointNavEnv(gymnasium.Env):
             raise ValueError(f"action must be an integer in 0..3, got {action!r}")
         rew, term, trunc = self.worlds.step(np.reshape(action, (1,)))
         self._path.append(self.worlds.sim.pos[0].copy())
+        if self._viewer is not None:
+            self._viewer.show(self._frame())
         return self._obs(), float(rew[0]), bool(term[0]), bool(trunc[0]), self.worlds.info(0)
 
     def render(self):
+        """``rgb_array``: the top-down view; ``human``: draws it in the window, returns None."""
+        if self.render_mode == "human" and self.worlds.sim.episodes[0] is not None:
+            self._viewer.show(self._frame())
         if self.render_mode != "rgb_array":
             return None
+        return self._frame()
+
+    def close(self) -> None:
+        if self._viewer is not None:
+            self._viewer.close()
+
+    def _frame(self) -> np.ndarray:
         sim = self.worlds.sim
         grid = sim.bank.grids[int(sim.scene_idx[0])]
         return topdown_view(grid, path=np.array(self._path), goal=sim.goal[0],

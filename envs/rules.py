@@ -37,6 +37,9 @@ from .sim.episodes import load_episodes, sample_episode
 PLANNER, EXECUTOR = 0, 1
 ELI_DIM = 128
 CLOSE_FAR_SPLIT = 5.76  # metres (paper, Fig. 5b)
+# The keys of every info dict (:meth:`_Worlds.info`), in order.
+INFO_KEYS = ("scene_index", "episode_id", "geodesic_distance", "distance_to_goal", "collisions", "steps",
+             "success", "spl")
 
 
 class InvalidAction(ValueError):
@@ -220,21 +223,25 @@ class _Worlds:
         self.spl[rows] = (success * l / np.maximum(np.maximum(l, p), 1e-9)).astype(np.float32)
 
     def info(self, i: int) -> dict:
-        """The info dict of world ``i`` (SPEC: scene_id, geodesic_distance, distance_to_goal,
-        collisions, steps; success and spl once the episode has ended)."""
+        """The info dict of world ``i``: the keys of :data:`INFO_KEYS`, every value a Python
+        number, the same keys from the reset to the end. ``success`` and ``spl`` read 0.0
+        until the episode has ended; ``scene_index`` indexes ``bank.scene_ids`` (the scene's
+        string id is :meth:`scene_id`)."""
         ep = self.sim.episodes[i]
-        d = {
-            "scene_id": ep.scene_id,
-            "episode_id": ep.episode_id,
+        return {
+            "scene_index": int(self.sim.scene_idx[i]),
+            "episode_id": int(ep.episode_id),
             "geodesic_distance": float(ep.geodesic_distance),
             "distance_to_goal": float(self.sim.distance_to_goal[i]),
             "collisions": int(self.collisions[i]),
             "steps": int(self.steps[i]),
+            "success": float(self.success[i]),  # 0.0 from the reset until _finish
+            "spl": float(self.spl[i]),
         }
-        if self.done[i]:
-            d["success"] = float(self.success[i])
-            d["spl"] = float(self.spl[i])
-        return d
+
+    def scene_id(self, i: int) -> str:
+        """The string id of world ``i``'s current scene (``bank.scene_ids[info["scene_index"]]``)."""
+        return self.sim.episodes[i].scene_id
 
     def goal_vector(self, rows) -> np.ndarray:
         return self.sim.polar_to(self.sim.goal[rows], rows)

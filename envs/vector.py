@@ -7,6 +7,10 @@ executor's action in the others. :class:`PointNavVectorEnv` does the same for th
 agent. Neither holds any rule of its own; the AEC env ``plex_nav_v0`` is the same rules
 with one world, which a test checks step for step.
 
+Info dicts (``info(i)``, ``episode_infos``) are those of the AEC and gym envs: the keys of
+:data:`~plex_ma.envs.rules.INFO_KEYS`, every value a number; ``scene_ids[info["scene_index"]]``
+is the scene's string id.
+
 Returned image arrays are views into the simulator's buffers: copy them if you keep them
 past the next ``step``, and do not write into them (a world whose agent did not move keeps
 its image from one step to the next).
@@ -18,11 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rules import EXECUTOR, PLANNER, NavConfig, PlexConfig, PlexWorlds, PointNavWorlds, make_config
+from .rules import EXECUTOR, INFO_KEYS, PLANNER, NavConfig, PlexConfig, PlexWorlds, PointNavWorlds, make_config
 from .spaces import (executor_action_space, executor_observation_space, planner_action_space,
                      planner_observation_space, pointnav_observation_space)
-
-INFO_KEYS = ("success", "spl", "geodesic_distance", "distance_to_goal", "collisions", "steps")
 
 
 @dataclass
@@ -101,6 +103,11 @@ class PlexVectorEnv:
     def info(self, i: int) -> dict:
         return self.worlds.info(i)
 
+    @property
+    def scene_ids(self) -> list[str]:
+        """The scenes of the split, in ``scene_index`` order."""
+        return list(self.worlds.bank.scene_ids)
+
     def close(self) -> None:
         pass
 
@@ -118,6 +125,11 @@ class PointNavVectorEnv:
         self.num_envs = int(num_envs)
         self.worlds = PointNavWorlds(self.config, self.num_envs, seed)
         self.observation_space = pointnav_observation_space(self.config)
+
+    @property
+    def scene_ids(self) -> list[str]:
+        """The scenes of the split, in ``scene_index`` order."""
+        return list(self.worlds.bank.scene_ids)
 
     def _obs(self) -> dict:
         w = self.worlds
@@ -142,4 +154,4 @@ class PointNavVectorEnv:
         pass
 
 
-__all__ = ["PlexVectorEnv", "PlexVecStep", "PointNavVectorEnv", "PLANNER", "EXECUTOR"]
+__all__ = ["PlexVectorEnv", "PlexVecStep", "PointNavVectorEnv", "PLANNER", "EXECUTOR", "INFO_KEYS"]

@@ -87,15 +87,17 @@ def _run_episodes(cfg, nets, split, episodes, scenes, num_envs, episodes_file, r
     # Worlds take the set's episodes in order as they free up; once the set is exhausted
     # they cycle through it again and those repeats are ignored.
     env.worlds.fixed_episodes = eps
+    scene_of = {e.episode_id: e.scene_id for e in eps}  # infos name the scene by index only
     results: dict[int, dict] = {}
     rng = np.random.default_rng(seed)
 
     def finish(infos, returns):
         for info, ret in zip(infos, returns):
             if info["episode_id"] in wanted and info["episode_id"] not in results:
-                keep = ("success", "spl", "distance_to_goal", "collisions", "geodesic_distance", "scene_id",
-                        "episode_id", "steps")
-                results[info["episode_id"]] = {**{m: info[m] for m in keep}, "reward": float(ret)}
+                keep = ("success", "spl", "distance_to_goal", "collisions", "geodesic_distance", "episode_id",
+                        "steps")
+                eid = info["episode_id"]
+                results[eid] = {**{m: info[m] for m in keep}, "scene_id": scene_of[eid], "reward": float(ret)}
 
     if plex:
         pl_kw = {"stop_prob": 0.02} if planner == "random" else {}  # random episodes end now and then

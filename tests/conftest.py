@@ -1,6 +1,7 @@
 """Shared test settings."""
 
 import os
+import sys
 
 import pytest
 import torch
@@ -11,6 +12,18 @@ from hypothesis import settings
 # examples every time and keeps exploring. A failure prints the seed to reproduce it.
 settings.register_profile("ci", derandomize=True, database=None, print_blob=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "default"))
+
+
+@pytest.fixture
+def headless(monkeypatch):
+    """No display, and the human render mode's once-per-process warning not yet given."""
+    from plex_ma.envs import viewer
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    if not sys.platform.startswith("linux"):
+        monkeypatch.setattr(viewer, "display_problem", lambda: "no display (test)")
+    monkeypatch.setattr(viewer, "_warned", False)
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -38,17 +38,58 @@ def test_seed(config):
     seed_test(lambda: plex_nav_v0.env(**config), num_cycles=300)
 
 
-def test_render():
-    # render_test first builds the env with render_mode="human" only to read
-    # metadata["render_modes"]; this env has no human mode, so map "human" to None.
-    def factory(render_mode=None):
-        return plex_nav_v0.env(render_mode=None if render_mode == "human" else render_mode, **SMALL)
-
-    render_test(factory)
-    e = factory("rgb_array")
+def test_render(headless):
+    assert plex_nav_v0.raw_env.metadata["render_modes"] == ["human", "rgb_array"]
+    render_test(lambda render_mode=None: plex_nav_v0.env(render_mode=render_mode, **SMALL))
+    render_test(lambda render_mode=None: plex_nav_v0.raw_env(render_mode=render_mode, **SMALL))
+    e = plex_nav_v0.env(render_mode="rgb_array", **SMALL)
     e.reset(seed=0)
     img = e.render()
     assert img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8 and img.std() > 0
+
+
+def test_human_mode_headless_warns_once_and_runs_on(headless):
+    with pytest.warns(UserWarning, match="render_mode='human' shows nothing here: no display") as got:
+        for seed in range(2):  # two envs, two episodes each: still one warning
+            env = plex_nav_v0.env(render_mode="human", **SMALL)
+            for _ in range(2):
+                env.reset(seed=seed)
+                drive(env, [1] * 3)
+                assert env.render() is None
+            env.close()
+    assert len([w for w in got if "render_mode='human'" in str(w.message)]) == 1
+    assert env.unwrapped._viewer.shown == 0
+
+
+def test_human_mode_draws_each_step_in_the_window(monkeypatch):
+    # The window itself needs a display; matplotlib's Agg canvas stands in for it here.
+    pytest.importorskip("matplotlib")
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    from plex_ma.envs import viewer
+
+    monkeypatch.setattr(viewer, "display_problem", lambda: None)
+    backend = matplotlib.get_backend()
+    plt.switch_backend("agg")
+    try:
+        env = plex_nav_v0.env(render_mode="human", **SMALL)
+        env.unwrapped._viewer.period = 0.0
+        ref = plex_nav_v0.env(render_mode="rgb_array", **SMALL)
+        for e in (env, ref):
+            e.reset(seed=4)
+        assert env.unwrapped._viewer.shown == 1  # reset draws
+        for e in (env, ref):
+            drive(e, [1, 2])
+        v = env.unwrapped._viewer
+        assert v.shown == 1 + 1 + 2  # and so does every step (planner, executor, executor)
+        np.testing.assert_array_equal(np.asarray(v._image.get_array()), ref.render())
+        assert env.render() is None and v.shown == 5
+        num = v._fig.number
+        env.close()
+        assert not plt.fignum_exists(num)
+    finally:
+        plt.switch_backend(backend)
 
 
 def test_performance_benchmark(capsys):
@@ -328,20 +369,61 @@ def test_spl_hand_computed():
 
 
 # ---------------------------------------------------------------- infos, spaces, pickling
+INFO_KEYS = ["scene_index", "episode_id", "geodesic_distance", "distance_to_goal", "collisions", "steps",
+             "success", "spl"]
+
+
 def test_infos_from_reset_on():
     env = plex_nav_v0.env(**SMALL)
     env.reset(seed=5)
     for a in env.agents:
         info = env.infos[a]
-        assert isinstance(info["scene_id"], str) and info["scene_id"].startswith("procgen-train-")
+        assert list(info) == INFO_KEYS
+        assert env.scene_ids[info["scene_index"]] == env.scene_id == env.unwrapped.episode.scene_id
+        assert env.scene_id.startswith("procgen-train-")
         assert 1.0 <= info["geodesic_distance"] <= 30.0
         assert info["distance_to_goal"] == pytest.approx(info["geodesic_distance"], abs=1e-6)
         assert info["steps"] == 0 and info["collisions"] == 0
-        assert "success" not in info
+        assert info["success"] == 0.0 and info["spl"] == 0.0
     env.step(planner_action(0, 1.0, 0.0))
     env.step(executor_action(1))
     assert env.infos["planner"]["steps"] == 1 and env.infos["executor"]["steps"] == 1
     assert env.infos["planner"] == env.infos["executor"]
+
+
+def _numbers_only(info: dict) -> bool:
+    return all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in info.values())
+
+
+@pytest.mark.parametrize("factory", [plex_nav_v0.env, plex_nav_v0.raw_env, plex_nav_v0.compat_env],
+                         ids=["env", "raw_env", "compat_env"])
+def test_info_keys_are_fixed_and_numeric_through_episodes(factory):
+    # Trainers such as TorchRL build a fixed spec from the first infos and then write every
+    # step's values into it: keys may not come or go, and strings cannot be tensors.
+    env = factory(n_ex=3, max_steps=12, **SMALL)
+    rng = np.random.default_rng(0)
+    seen = {"reset": 0, "mid": 0, "end": 0}
+    for seed in range(12):
+        env.reset(seed=seed)
+        for agent in env.agent_iter(200):
+            for a in env.agents:
+                assert list(env.infos[a]) == INFO_KEYS and _numbers_only(env.infos[a]), env.infos[a]
+            obs, _, term, trunc, info = env.last()
+            stage = "reset" if info["steps"] == 0 and agent == "planner" else "end" if term or trunc else "mid"
+            seen[stage] += 1
+            if stage == "end":
+                assert info["success"] in (0.0, 1.0) and 0.0 <= info["spl"] <= info["success"]
+            else:
+                assert info["success"] == 0.0 and info["spl"] == 0.0
+            if term or trunc:
+                env.step(None)
+            elif factory is plex_nav_v0.compat_env:
+                env.step(0 if agent == "planner" and rng.random() < 0.1 else int(rng.integers(1, 4)))
+            elif agent == "planner":
+                env.step(planner_action(int(rng.random() < 0.1), rng.uniform(0.5, 3.0), rng.uniform(-3, 3)))
+            else:
+                env.step(executor_action(int(rng.integers(0, 4))))
+    assert min(seen["reset"], seen["mid"], seen["end"]) >= 12, seen
 
 
 def test_spaces_are_the_same_objects():

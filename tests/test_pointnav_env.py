@@ -9,7 +9,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import plex_ma  # noqa: F401  registers the env
-from plex_ma.envs.rules import InvalidAction
+from plex_ma.envs.rules import INFO_KEYS, InvalidAction
 
 from .env_helpers import SMALL, line_episode
 
@@ -32,10 +32,43 @@ def test_spaces_and_first_observation():
     assert env.observation_space.contains(obs)
     assert env.action_space == gymnasium.spaces.Discrete(4)
     assert obs["rgb"].shape == (64, 64, 3) and obs["depth"].shape == (64, 64, 1)
-    for k in ("scene_id", "episode_id", "geodesic_distance", "distance_to_goal", "collisions", "steps"):
-        assert k in info
+    assert list(info) == list(INFO_KEYS)
+    assert env.unwrapped.scene_ids[info["scene_index"]] == env.unwrapped.scene_id
     assert obs["pointgoal"][0] == pytest.approx(np.hypot(*(env.unwrapped.worlds.sim.goal[0]
                                                          - env.unwrapped.worlds.sim.pos[0])), abs=1e-4)
+
+
+def test_info_keys_are_fixed_and_numeric_through_episodes():
+    env = make(max_steps=15)
+    rng = np.random.default_rng(1)
+    for seed in range(6):
+        _, info = env.reset(seed=seed)
+        infos = [info]
+        done = False
+        while not done:
+            _, _, term, trunc, info = env.step(int(rng.integers(0, 4)) if rng.random() < 0.1 else 1)
+            infos.append(info)
+            done = term or trunc
+        assert len(infos) >= 2
+        for k, info in enumerate(infos):
+            assert list(info) == list(INFO_KEYS), info
+            assert all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in info.values()), info
+            if k < len(infos) - 1:
+                assert info["success"] == 0.0 and info["spl"] == 0.0
+
+
+def test_render_modes(headless):
+    assert make().metadata["render_modes"] == ["human", "rgb_array"]
+    img = make(render_mode="rgb_array")
+    img.reset(seed=0)
+    frame = img.render()
+    assert frame.ndim == 3 and frame.dtype == np.uint8
+    env = make(render_mode="human")
+    with pytest.warns(UserWarning, match="render_mode='human' shows nothing here"):
+        env.reset(seed=0)
+    env.step(1)
+    assert env.render() is None
+    env.close()
 
 
 def test_seeded_runs_repeat():

@@ -179,6 +179,8 @@ def test_evaluate_cli_writes_json(tmp_path):
             assert k in part
     assert res["episodes"] == 3 == res["close"]["episodes"] + res["far"]["episodes"]
     assert len({r["episode_id"] for r in res["per_episode"]}) == 3
+    # the per-episode records name the scene by its string id (infos carry only its index)
+    assert all(r["scene_id"].startswith("procgen-val-") for r in res["per_episode"])
 
 
 def test_evaluate_rejects_a_bad_checkpoint(tmp_path, capsys):

@@ -795,7 +795,7 @@ class EpisodeRecorder:
     def _finish(self, ep: _Episode, info: dict, stopped: bool) -> None:
         import rerun as rr
 
-        success, spl = float(info.get("success", 0.0)), float(info.get("spl", 0.0))
+        success, spl = float(info["success"]), float(info["spl"])
         ep.add("scalar:metrics/success", success)
         ep.add("scalar:metrics/spl", spl)
         how = "stopped" if stopped else "truncated"
