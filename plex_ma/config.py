@@ -38,6 +38,10 @@ class TrainConfig:
     """PLEX only: scene source during the planner warm-up (e.g. open-room, where random sub-goals are reachable); None: --scenes"""
     warmup_max_steps: int = 40
     """PLEX only: agent actions per episode on --warmup-scenes (short episodes keep the agent away from walls, where snapped sub-goals are trivially close)"""
+    oracle_subgoal_steps: int = 0
+    """PLEX only: after the warm-up, environment steps in the training scenes during which the shortest-path oracle planner (ground truth) sets the sub-goals and only the executor learns"""
+    frozen_executor_steps: int = 0
+    """PLEX only: then environment steps during which only the planner learns, over the learned executor acting but not updated"""
     preset: Preset = "cpu"
     """defaults to start from: smoke (< 2 min), cpu (best per CPU hour here), paper (256 px, paper settings)"""
     total_steps: int = 2_000_000
@@ -185,6 +189,12 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.executor_stop_penalty <= 0, "executor_stop_penalty", "must be <= 0")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
+    need(cfg.oracle_subgoal_steps >= 0, "oracle_subgoal_steps", "must be >= 0")
+    need(cfg.frozen_executor_steps >= 0, "frozen_executor_steps", "must be >= 0")
+    need(not (cfg.frozen_executor_steps and (cfg.planner != "learn" or cfg.executor != "learn")),
+         "frozen_executor_steps", "needs both agents learned (--planner learn --executor learn)")
+    need(not (cfg.oracle_subgoal_steps and cfg.executor != "learn"), "oracle_subgoal_steps",
+         "trains the executor: needs --executor learn")
     need(0 < cfg.subgoal_radius < 5, "subgoal_radius", "must be in (0, 5) metres")
     need(cfg.planner_entropy_coef is None or cfg.planner_entropy_coef >= 0, "planner_entropy_coef", "must be >= 0")
     need(cfg.rho_max > 0.5, "rho_max", "must be above 0.5 m")

@@ -223,6 +223,42 @@ def test_warmup_on_other_scenes_then_training_scenes(tmp_path):
     assert t.updates["planner"] >= 1  # the planner trained after the warm-up
 
 
+def test_phases_oracle_subgoals_then_frozen_executor_then_main(tmp_path):
+    """The phase schedule: warm-up, oracle sub-goals (only the executor changes), frozen
+    executor (only the planner changes), then both learn; the logged phase follows it."""
+    from plex_ma.trainers.plex import phase_at
+
+    cfg = tiny(tmp_path, planner_warmup_steps=32, oracle_subgoal_steps=64, frozen_executor_steps=96,
+               total_steps=256, n_pl=1)
+    names = [phase_at(cfg, s).name for s in (0, 31, 32, 95, 96, 191, 192, 10_000)]
+    assert names == ["warmup", "warmup", "oracle-subgoals", "oracle-subgoals", "frozen-executor",
+                     "frozen-executor", "main", "main"]
+    t = make_trainer(cfg)
+    snaps = {}
+
+    def snap():
+        return {k: [p.detach().clone() for p in m.parameters()] for k, m in t.nets.items()}
+
+    def same(a, b):
+        return all(torch.equal(x, y) for x, y in zip(a, b))
+
+    while t.step < cfg.total_steps:
+        before, name = snap(), t._phase().name
+        t.cfg = dataclasses.replace(cfg, total_steps=t.step + 1)  # one executor rollout per call
+        t.train()
+        after = snap()
+        snaps.setdefault(name, []).append((same(before["planner"], after["planner"]),
+                                           same(before["executor"], after["executor"])))
+    t.close()
+    assert set(snaps) == {"warmup", "oracle-subgoals", "frozen-executor", "main"}
+    assert all(pl and not ex for pl, ex in snaps["oracle-subgoals"])  # only the executor learns
+    assert all(ex for pl, ex in snaps["frozen-executor"])  # the executor never changes
+    assert not all(pl for pl, ex in snaps["frozen-executor"])  # the planner does
+    assert not all(ex for pl, ex in snaps["main"])
+    lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [d["phase"] for d in lines] == sorted(d["phase"] for d in lines)
+
+
 @pytest.mark.slow
 def test_plex_learns_to_reach_the_goal(tmp_path):
     """PLEX end to end with the cpu preset's recipe in an open room (100-step episodes, 8

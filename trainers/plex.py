@@ -16,9 +16,11 @@ PLEX runs through the rollout driver (:mod:`.driver`), per iteration:
    completed, a PPO update of the planner.
 
 Either agent can be a stand-in that is not trained (``--planner random|oracle``,
-``--executor oracle``: the shortest-path oracles use ground truth). During the first
-``planner_warmup_steps`` steps the ``warmup_planner`` stands in (on ``warmup_scenes`` if
-given) and only the executor learns.
+``--executor oracle``: the shortest-path oracles use ground truth). A run can begin with
+phases (:func:`phase_at`) in which one agent learns while the other stands in or acts
+without learning: the warm-up (the ``warmup_planner`` on ``warmup_scenes``), the oracle
+sub-goals (the executor learns under the oracle planner) and the frozen executor (the
+planner learns over the executor as it is).
 
 Stop-gradient: the ELI reaches the planner through the environment as a plain array, and
 the planner detaches it again inside its forward pass; the planner's optimiser holds only
@@ -69,6 +71,37 @@ def env_kwargs(cfg: TrainConfig, split: str = "train") -> dict:
         kw |= dict(n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, subgoal_radius=cfg.subgoal_radius,
                    executor_stop_penalty=cfg.executor_stop_penalty)
     return kw
+
+
+PHASES = ("warmup", "oracle-subgoals", "frozen-executor", "main")
+
+
+@dataclass(frozen=True)
+class Phase:
+    """A stretch of a PLEX run: which planner acts and which agents learn."""
+
+    name: str  # one of PHASES (its index is logged as the metric "phase")
+    planner: str  # the planner policy acting: learn, random or oracle
+    learn_planner: bool
+    learn_executor: bool
+    warm_env: bool  # on --warmup-scenes with --warmup-max-steps
+
+
+def phase_at(cfg: TrainConfig, step: int) -> Phase:
+    """The phase of a PLEX run at an environment step. In order, each for its number of
+    steps: the warm-up (``planner_warmup_steps``: the warm-up planner, the executor learns),
+    the oracle sub-goals (``oracle_subgoal_steps``: the oracle planner, the executor
+    learns), the frozen executor (``frozen_executor_steps``: the planner learns), then the
+    main phase (the agents as ``--planner`` / ``--executor`` say)."""
+    learn_ex = cfg.executor == "learn"
+    ends = np.cumsum([cfg.planner_warmup_steps, cfg.oracle_subgoal_steps, cfg.frozen_executor_steps])
+    if step < ends[0]:
+        return Phase("warmup", cfg.warmup_planner, False, learn_ex, bool(cfg.warmup_scenes))
+    if step < ends[1]:
+        return Phase("oracle-subgoals", "oracle", False, True, False)
+    if step < ends[2]:
+        return Phase("frozen-executor", "learn", True, False, False)
+    return Phase("main", cfg.planner, cfg.planner == "learn", learn_ex, False)
 
 
 def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
@@ -254,30 +287,25 @@ class PlexTrainer(Trainer):
         self.executor: Executor = self.nets["executor"]
         self.np_rng = np.random.default_rng(cfg.seed + self.dist.seed_offset)
         self.executor_success: deque = deque(maxlen=200)  # reached / turns, over recent turns
-        self.warm_env = bool(cfg.warmup_scenes) and self._warming_up()
         self._make_driver()
 
-    def _warming_up(self) -> bool:
-        return self.step < self.cfg.planner_warmup_steps
-
-    def _phase(self) -> str:
-        return "warmup" if self._warming_up() else "main"
+    def _phase(self) -> Phase:
+        return phase_at(self.cfg, self.step)
 
     def _make_driver(self) -> None:
-        """The training worlds (during the warm-up on ``--warmup-scenes`` if given) and the
+        """The training worlds (on ``--warmup-scenes`` in a warm-up that has them) and the
         driver with this phase's planner and executor policies."""
         cfg = self.cfg
+        self.phase = self._phase()
         kw = env_kwargs(cfg)
-        if self.warm_env:
+        if self.phase.warm_env:
             kw |= {"scenes": cfg.warmup_scenes, "num_scenes": None, "max_steps": cfg.warmup_max_steps}
         self.env = PlexVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["executor"] + self.dist.seed_offset,
                                  **kw)
-        self.phase = self._phase()
-        planner = cfg.warmup_planner if self.phase == "warmup" else cfg.planner
         self.driver = PlexDriver(
             self.env,
-            make_planner(planner, self.env, self.planner, rng=self.np_rng, max_distance=cfg.random_subgoal_distance,
-                         max_angle=cfg.random_subgoal_angle),
+            make_planner(self.phase.planner, self.env, self.planner, rng=self.np_rng,
+                         max_distance=cfg.random_subgoal_distance, max_angle=cfg.random_subgoal_angle),
             make_executor(cfg.executor, self.env, self.executor))
         self.driver.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
         n = cfg.num_envs
@@ -405,15 +433,14 @@ class PlexTrainer(Trainer):
         bar, last_log, t_start, s_start, timing = self._loop_start()
         while self.step < cfg.total_steps:
             if self.phase != self._phase():
-                # The warm-up is over: new worlds (on the training scenes) and the configured
-                # planner. Episodes in flight are dropped (the warm-up planner is not trained).
+                # A new phase: new worlds and this phase's planner. Episodes in flight are
+                # dropped (their planner transitions would mix two phases' policies).
                 self.env.close()
-                self.warm_env = False
                 self.stats = EpisodeStats()
                 self._make_driver()
             drv = self.driver
-            learn_ex = drv.executor.learns
-            learn_pl = self._learn_planner = drv.planner.learns and self.phase == "main"
+            learn_ex = drv.executor.learns and self.phase.learn_executor
+            learn_pl = self._learn_planner = drv.planner.learns and self.phase.learn_planner
             buf = RolloutBuffer(T, n)
             if learn_ex:
                 buf.initial_state = drv.state.clone()
@@ -443,7 +470,7 @@ class PlexTrainer(Trainer):
                 timing["inference"] += time.perf_counter() - t0 - sim
                 timing["sim"] += sim
             t4 = time.perf_counter()
-            metrics = {}
+            metrics = {"phase": PHASES.index(self.phase.name)}
             if learn_ex:
                 # V(o_T) for worlds still inside a turn (their memory continues)
                 rows = np.flatnonzero(drv.turn != PLANNER)
