@@ -10,7 +10,7 @@ import pytest
 
 from plex_ma.envs import plex_nav_v0
 from plex_ma.envs.rules import InvalidAction
-from plex_ma.envs.vector import EXECUTOR, PLANNER, PlexVectorEnv, PointNavVectorEnv
+from plex_ma.envs.vector import EXECUTOR, INFO_KEYS, PLANNER, PlexVectorEnv, PointNavVectorEnv
 
 from .env_helpers import SMALL, line_episode
 
@@ -84,6 +84,7 @@ def test_plex_vector_env_matches_aec(num_envs, seed, max_steps, eli):
             assert (aec.terminations["planner"] or aec.truncations["planner"]) == ended
             if ended:
                 info = out.episode_infos[ended_rows.index(i)]
+                assert tuple(info) == INFO_KEYS
                 _finish_aec_episode(aec, info, bool(out.terminated[i]))
                 counts["terminated" if out.terminated[i] else "truncated"] += 1
                 counts["success"] += info["success"] > 0
