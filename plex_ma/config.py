@@ -40,8 +40,10 @@ class TrainConfig:
     """PLEX only: agent actions per episode on --warmup-scenes (short episodes keep the agent away from walls, where snapped sub-goals are trivially close)"""
     oracle_subgoal_steps: int = 0
     """PLEX only: after the warm-up, environment steps in the training scenes during which the shortest-path oracle planner (ground truth) sets the sub-goals and only the executor learns"""
-    frozen_executor_steps: int = 0
-    """PLEX only: then environment steps during which only the planner learns, over the learned executor acting but not updated"""
+    planner_imitation_steps: int = 0
+    """PLEX only: then environment steps during which the planner learns by PPO and by imitating the oracle planner's decisions in the states it visits (ground truth; DAgger with the learner acting), beside the executor"""
+    imitation_minibatches: int = 8
+    """PLEX only: during --planner-imitation-steps, minibatches of 128 decisions drawn from the aggregate of the last 20,000 (with the oracle's decisions) for imitation steps after each executor rollout"""
     preset: Preset = "cpu"
     """defaults to start from: smoke (< 2 min), cpu (best per CPU hour here), paper (256 px, paper settings)"""
     total_steps: int = 2_000_000
@@ -190,9 +192,10 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
     need(cfg.oracle_subgoal_steps >= 0, "oracle_subgoal_steps", "must be >= 0")
-    need(cfg.frozen_executor_steps >= 0, "frozen_executor_steps", "must be >= 0")
-    need(not (cfg.frozen_executor_steps and (cfg.planner != "learn" or cfg.executor != "learn")),
-         "frozen_executor_steps", "needs both agents learned (--planner learn --executor learn)")
+    need(cfg.planner_imitation_steps >= 0, "planner_imitation_steps", "must be >= 0")
+    need(not (cfg.planner_imitation_steps and cfg.planner != "learn"), "planner_imitation_steps",
+         "trains the planner: needs --planner learn")
+    need(cfg.imitation_minibatches >= 1, "imitation_minibatches", "must be >= 1")
     need(not (cfg.oracle_subgoal_steps and cfg.executor != "learn"), "oracle_subgoal_steps",
          "trains the executor: needs --executor learn")
     need(0 < cfg.subgoal_radius < 5, "subgoal_radius", "must be in (0, 5) metres")

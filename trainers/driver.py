@@ -84,6 +84,22 @@ class OraclePlannerPolicy:
         return {"stop": stop, "subgoal": sub}
 
 
+class ImitatingPlanner:
+    """A learned planner that acts while the oracle planner's decision in the same state
+    is returned beside it (``teacher_stop``, ``teacher_subgoal``), for an imitation loss
+    (ground truth)."""
+
+    learns, ground_truth, name = True, True, "imitating"
+
+    def __init__(self, learned: LearnedPlanner, teacher: OraclePlannerPolicy):
+        self.learned, self.teacher = learned, teacher
+
+    def decide(self, obs: dict, rows: np.ndarray) -> dict:
+        teach = self.teacher.decide(obs, rows)  # before the decision is applied: the same state
+        out = self.learned.decide(obs, rows)
+        return out | {"teacher_stop": teach["stop"], "teacher_subgoal": teach["subgoal"]}
+
+
 # --------------------------------------------------------------------------- executors
 
 
@@ -229,11 +245,13 @@ class PlexDriver:
 
 
 def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None, **random_kw):
-    """A planner policy by name: 'learned' (needs ``net``), 'random' or 'oracle'."""
-    if kind in ("learn", "learned"):
+    """A planner policy by name: 'learned' (needs ``net``), 'imitating' (the learned one
+    with the oracle's decisions beside its own), 'random' or 'oracle'."""
+    if kind in ("learn", "learned", "imitating"):
         if net is None:
             raise ValueError("a learned planner needs a network (a checkpoint)")
-        return LearnedPlanner(net, deterministic)
+        learned = LearnedPlanner(net, deterministic)
+        return ImitatingPlanner(learned, OraclePlannerPolicy(env)) if kind == "imitating" else learned
     if kind == "random":
         return RandomPlanner(rng=rng, **({"max_distance": env.config.rho_max} | random_kw))
     if kind == "oracle":

@@ -19,8 +19,8 @@ Either agent can be a stand-in that is not trained (``--planner random|oracle``,
 ``--executor oracle``: the shortest-path oracles use ground truth). A run can begin with
 phases (:func:`phase_at`) in which one agent learns while the other stands in or acts
 without learning: the warm-up (the ``warmup_planner`` on ``warmup_scenes``), the oracle
-sub-goals (the executor learns under the oracle planner) and the frozen executor (the
-planner learns over the executor as it is).
+sub-goals (the executor learns under the oracle planner) and the planner's imitation (the
+planner also learns to imitate the oracle planner's decisions in the states it visits).
 
 Stop-gradient: the ELI reaches the planner through the environment as a plain array, and
 the planner detaches it again inside its forward pass; the planner's optimiser holds only
@@ -73,7 +73,7 @@ def env_kwargs(cfg: TrainConfig, split: str = "train") -> dict:
     return kw
 
 
-PHASES = ("warmup", "oracle-subgoals", "frozen-executor", "main")
+PHASES = ("warmup", "oracle-subgoals", "planner-imitation", "main")
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class Phase:
     """A stretch of a PLEX run: which planner acts and which agents learn."""
 
     name: str  # one of PHASES (its index is logged as the metric "phase")
-    planner: str  # the planner policy acting: learn, random or oracle
+    planner: str  # the planner policy acting: learn, imitating, random or oracle
     learn_planner: bool
     learn_executor: bool
     warm_env: bool  # on --warmup-scenes with --warmup-max-steps
@@ -91,16 +91,17 @@ def phase_at(cfg: TrainConfig, step: int) -> Phase:
     """The phase of a PLEX run at an environment step. In order, each for its number of
     steps: the warm-up (``planner_warmup_steps``: the warm-up planner, the executor learns),
     the oracle sub-goals (``oracle_subgoal_steps``: the oracle planner, the executor
-    learns), the frozen executor (``frozen_executor_steps``: the planner learns), then the
-    main phase (the agents as ``--planner`` / ``--executor`` say)."""
+    learns), the planner's imitation (``planner_imitation_steps``: the planner acts and
+    learns by PPO and by imitating the oracle planner, beside the executor), then the main
+    phase (the agents as ``--planner`` / ``--executor`` say)."""
     learn_ex = cfg.executor == "learn"
-    ends = np.cumsum([cfg.planner_warmup_steps, cfg.oracle_subgoal_steps, cfg.frozen_executor_steps])
+    ends = np.cumsum([cfg.planner_warmup_steps, cfg.oracle_subgoal_steps, cfg.planner_imitation_steps])
     if step < ends[0]:
         return Phase("warmup", cfg.warmup_planner, False, learn_ex, bool(cfg.warmup_scenes))
     if step < ends[1]:
         return Phase("oracle-subgoals", "oracle", False, True, False)
     if step < ends[2]:
-        return Phase("frozen-executor", "learn", True, False, False)
+        return Phase("planner-imitation", "imitating", True, learn_ex, False)
     return Phase("main", cfg.planner, cfg.planner == "learn", learn_ex, False)
 
 
@@ -278,6 +279,45 @@ class Trainer:
         return logged
 
 
+IMITATION_CAPACITY = 20_000  # planner decisions kept for imitation (DAgger's aggregate, newest kept)
+IMITATION_BATCH = 128
+
+
+class ImitationSet:
+    """Planner observations with the oracle planner's decisions in them, in a ring of
+    ``capacity``; the ego map and the ELI are kept in float16 (the ego map's values are
+    multiples of 1/4, exact in float16)."""
+
+    def __init__(self, capacity: int):
+        self.capacity, self.size, self.next = capacity, 0, 0
+        self.data: dict[str, torch.Tensor] = {}
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add(self, obs: dict, stop, subgoal) -> None:
+        items = {**{f"obs/{k}": torch.as_tensor(v) for k, v in obs.items()},
+                 "stop": torch.as_tensor(stop, dtype=torch.long), "subgoal": torch.as_tensor(subgoal, dtype=torch.float32)}
+        if not self.data:
+            for k, v in items.items():
+                dtype = torch.float16 if k in ("obs/ego_map", "obs/eli") else v.dtype
+                self.data[k] = torch.zeros((self.capacity,) + v.shape[1:], dtype=dtype)
+        k = len(items["stop"])
+        at = (self.next + torch.arange(k)) % self.capacity
+        for key, v in items.items():
+            self.data[key][at] = v.to(self.data[key].dtype)
+        self.next = int((self.next + k) % self.capacity)
+        self.size = min(self.size + k, self.capacity)
+
+    def sample(self, n: int, generator: torch.Generator) -> tuple[dict, torch.Tensor, torch.Tensor]:
+        """(planner obs, teacher stop, teacher sub-goal) of ``n`` decisions drawn uniformly
+        (with replacement)."""
+        idx = torch.randint(self.size, (n,), generator=generator)
+        obs = {k[4:]: v[idx].float() if v.dtype == torch.float16 else v[idx]
+               for k, v in self.data.items() if k.startswith("obs/")}
+        return obs, self.data["stop"][idx], self.data["subgoal"][idx]
+
+
 class PlexTrainer(Trainer):
     """Independent PPO for the planner and the executor (see the module docstring)."""
 
@@ -287,6 +327,7 @@ class PlexTrainer(Trainer):
         self.executor: Executor = self.nets["executor"]
         self.np_rng = np.random.default_rng(cfg.seed + self.dist.seed_offset)
         self.executor_success: deque = deque(maxlen=200)  # reached / turns, over recent turns
+        self.imitation = ImitationSet(IMITATION_CAPACITY)  # not checkpointed: a resumed run starts it afresh
         self._make_driver()
 
     def _phase(self) -> Phase:
@@ -350,6 +391,8 @@ class PlexTrainer(Trainer):
         self.pending_data["stop"][idx] = torch.as_tensor(out["stop"])
         self.pending_data["subgoal"][idx] = out["raw"]
         self.pending_data["log_prob"][idx] = out["log_prob"]
+        if "teacher_stop" in out:
+            self.imitation.add(d.obs, out["teacher_stop"], out["teacher_subgoal"])
         self.pending_value[rows] = out["value"].numpy()
         self.pending_reward[rows] = 0.0
         self.pending[rows] = True
@@ -403,6 +446,22 @@ class PlexTrainer(Trainer):
         stats = ppo_update(self.planner, buf, self.opts["planner"], ppo, self.gen)
         self.updates["planner"] += 1
         return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": m}
+
+    def _imitate(self) -> dict:
+        """Imitation steps of the planner (after every executor rollout of the phase) on
+        minibatches of the aggregate (DAgger): the negative log-likelihood of the oracle's
+        decisions, on the planner's optimiser."""
+        nll = []
+        for _ in range(self.cfg.imitation_minibatches):
+            obs, stop, subgoal = self.imitation.sample(IMITATION_BATCH, self.gen)
+            loss = self.planner.imitation_loss(obs, stop, subgoal).mean()
+            self.opts["planner"].zero_grad()
+            loss.backward()
+            distributed.average_gradients(self.planner)
+            torch.nn.utils.clip_grad_norm_(self.planner.parameters(), self.cfg.max_grad_norm)
+            self.opts["planner"].step()
+            nll.append(loss.item())
+        return {"learner/planner_imitation_nll": float(np.mean(nll)), "learner/planner_imitation_set": len(self.imitation)}
 
     # ---------------------------------------------------------------- executor
     def _values(self, obs: dict, state: torch.Tensor) -> np.ndarray:
@@ -485,6 +544,8 @@ class PlexTrainer(Trainer):
                 metrics["metrics/executor_success"] = float(np.mean(self.executor_success))
             if learn_pl and self._planner_ready():
                 metrics |= self._update_planner()
+            if self.phase.name == "planner-imitation" and distributed.all_true(len(self.imitation) > 0):
+                metrics |= self._imitate()
             timing["update"] += time.perf_counter() - t4
             last_log = self._end_of_update(self.updates["executor"], metrics, timing, t_start, s_start, bar) or last_log
             if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
