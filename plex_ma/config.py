@@ -38,12 +38,14 @@ class TrainConfig:
     """PLEX only: scene source during the planner warm-up (e.g. open-room, where random sub-goals are reachable); None: --scenes"""
     warmup_max_steps: int = 40
     """PLEX only: agent actions per episode on --warmup-scenes (short episodes keep the agent away from walls, where snapped sub-goals are trivially close)"""
-    oracle_subgoal_steps: int = 0
-    """PLEX only: after the warm-up, environment steps in the training scenes during which the shortest-path oracle planner (ground truth) sets the sub-goals and only the executor learns"""
+    teacher: Literal["map", "oracle"] = "map"
+    """PLEX only: the planner that sets the sub-goals during --teacher-subgoal-steps and that the learned planner imitates during --planner-imitation-steps: map (shortest paths on the agent's own ego map, the learned planner's observations only) or oracle (shortest paths in the true map, ground truth)"""
+    teacher_subgoal_steps: int = 0
+    """PLEX only: after the warm-up, environment steps in the training scenes during which the --teacher planner sets the sub-goals and only the executor learns"""
     planner_imitation_steps: int = 0
-    """PLEX only: then environment steps during which the planner learns by PPO and by imitating the oracle planner's decisions in the states it visits (ground truth; DAgger with the learner acting), beside the executor"""
+    """PLEX only: then environment steps during which the planner learns by PPO and by imitating the --teacher planner's decisions in the states it visits (DAgger with the learner acting), beside the executor"""
     imitation_minibatches: int = 8
-    """PLEX only: during --planner-imitation-steps, minibatches of 128 decisions drawn from the aggregate of the last 20,000 (with the oracle's decisions) for imitation steps after each executor rollout"""
+    """PLEX only: during --planner-imitation-steps, minibatches of 128 decisions drawn from the aggregate of the last 20,000 (with the teacher's decisions) for imitation steps after each executor rollout"""
     preset: Preset = "cpu"
     """defaults to start from: smoke (< 2 min), cpu (best per CPU hour here), paper (256 px, paper settings)"""
     total_steps: int = 2_000_000
@@ -191,12 +193,13 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.executor_stop_penalty <= 0, "executor_stop_penalty", "must be <= 0")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
-    need(cfg.oracle_subgoal_steps >= 0, "oracle_subgoal_steps", "must be >= 0")
+    need(cfg.teacher_subgoal_steps >= 0, "teacher_subgoal_steps", "must be >= 0")
+    need(cfg.teacher in ("map", "oracle"), "teacher", "must be 'map' or 'oracle'")
     need(cfg.planner_imitation_steps >= 0, "planner_imitation_steps", "must be >= 0")
     need(not (cfg.planner_imitation_steps and cfg.planner != "learn"), "planner_imitation_steps",
          "trains the planner: needs --planner learn")
     need(cfg.imitation_minibatches >= 1, "imitation_minibatches", "must be >= 1")
-    need(not (cfg.oracle_subgoal_steps and cfg.executor != "learn"), "oracle_subgoal_steps",
+    need(not (cfg.teacher_subgoal_steps and cfg.executor != "learn"), "teacher_subgoal_steps",
          "trains the executor: needs --executor learn")
     need(0 < cfg.subgoal_radius < 5, "subgoal_radius", "must be in (0, 5) metres")
     need(cfg.planner_entropy_coef is None or cfg.planner_entropy_coef >= 0, "planner_entropy_coef", "must be >= 0")

@@ -172,8 +172,9 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--checkpoint", default=None,
                    help="checkpoint file (e.g. runs/x/latest.pt, or pretrained:plex-gru); not needed when both "
                         "PLEX agents are stand-ins")
-    p.add_argument("--planner", choices=["learned", "oracle", "random"], default="learned",
-                   help="PLEX planner: the checkpoint's, the shortest-path oracle (ground truth) or random")
+    p.add_argument("--planner", choices=["learned", "oracle", "random", "map"], default="learned",
+                   help="PLEX planner: the checkpoint's, the shortest-path oracle (ground truth), random, or "
+                        "shortest paths on the agent's own ego map (no ground truth)")
     p.add_argument("--executor", choices=["learned", "oracle", "random"], default="learned",
                    help="PLEX executor: the checkpoint's, the shortest-path oracle (ground truth) or random")
     p.add_argument("--sample", action="store_true", help="sample the learned agents' actions (seeded) instead of greedy")
@@ -194,7 +195,7 @@ def main(argv: list[str] | None = None) -> dict:
         p.error("--episodes must be >= 1")
     needs_nets = a.checkpoint is not None or "learned" in (a.planner, a.executor)
     if a.checkpoint is None and needs_nets:
-        p.error("--checkpoint is needed unless both --planner and --executor are oracle or random")
+        p.error("--checkpoint is needed unless neither --planner nor --executor is learned")
     try:
         cfg, nets = load_policies(a.checkpoint) if a.checkpoint else (TrainConfig(), {})
     except CheckpointError as e:

@@ -27,8 +27,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", help="checkpoint file whose networks act (greedily), or pretrained:NAME")
     p.add_argument("--policy", choices=["random"], help="a random planner/executor pair instead of a checkpoint")
-    p.add_argument("--planner", choices=["learned", "oracle", "random"], default=None,
-                   help="PLEX planner (default: the checkpoint's; oracle = ground truth)")
+    p.add_argument("--planner", choices=["learned", "oracle", "random", "map"], default=None,
+                   help="PLEX planner (default: the checkpoint's; oracle = ground truth; map = shortest paths on "
+                        "the agent's own ego map)")
     p.add_argument("--executor", choices=["learned", "oracle", "random"], default=None,
                    help="PLEX executor (default: the checkpoint's; oracle = ground truth)")
     p.add_argument("--episodes", type=int, default=1, help="episodes to record")
@@ -52,7 +53,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         a.executor = a.executor or "random"
     a.planner, a.executor = a.planner or "learned", a.executor or "learned"
     if not a.checkpoint and "learned" in (a.planner, a.executor):
-        p.error("--checkpoint is needed unless --planner and --executor are both oracle or random")
+        p.error("--checkpoint is needed unless neither --planner nor --executor is learned")
     from plex_ma.viz.record import EpisodeRecorder
 
     rec = EpisodeRecorder(a.out, max_episodes=a.episodes, images=not a.no_images, jpeg_quality=a.jpeg_quality,

@@ -223,15 +223,15 @@ def test_warmup_on_other_scenes_then_training_scenes(tmp_path):
     assert t.updates["planner"] >= 1  # the planner trained after the warm-up
 
 
-def test_phases_oracle_subgoals_then_imitation_then_main(tmp_path):
-    """The phase schedule: warm-up, oracle sub-goals (only the executor changes), the
+def test_phases_teacher_subgoals_then_imitation_then_main(tmp_path):
+    """The phase schedule: warm-up, the teacher's sub-goals (only the executor changes), the
     planner's imitation (its loss is logged), then both learn; the logged phase follows it."""
     from plex_ma.trainers.plex import phase_at
 
-    cfg = tiny(tmp_path, planner_warmup_steps=32, oracle_subgoal_steps=64, planner_imitation_steps=96,
+    cfg = tiny(tmp_path, planner_warmup_steps=32, teacher_subgoal_steps=64, planner_imitation_steps=96,
                total_steps=256, n_pl=1)
     names = [phase_at(cfg, s).name for s in (0, 31, 32, 95, 96, 191, 192, 10_000)]
-    assert names == ["warmup", "warmup", "oracle-subgoals", "oracle-subgoals", "planner-imitation",
+    assert names == ["warmup", "warmup", "teacher-subgoals", "teacher-subgoals", "planner-imitation",
                      "planner-imitation", "main", "main"]
     t = make_trainer(cfg)
     snaps = {}
@@ -250,8 +250,8 @@ def test_phases_oracle_subgoals_then_imitation_then_main(tmp_path):
         snaps.setdefault(name, []).append((same(before["planner"], after["planner"]),
                                            same(before["executor"], after["executor"])))
     t.close()
-    assert set(snaps) == {"warmup", "oracle-subgoals", "planner-imitation", "main"}
-    assert all(pl and not ex for pl, ex in snaps["warmup"] + snaps["oracle-subgoals"])  # only the executor learns
+    assert set(snaps) == {"warmup", "teacher-subgoals", "planner-imitation", "main"}
+    assert all(pl and not ex for pl, ex in snaps["warmup"] + snaps["teacher-subgoals"])  # only the executor learns
     assert not all(pl for pl, ex in snaps["planner-imitation"])
     assert not all(pl for pl, ex in snaps["main"]) and not all(ex for pl, ex in snaps["main"])
     lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]

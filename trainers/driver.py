@@ -6,7 +6,8 @@ with a pluggable policy for each agent:
 ============  =====================================  =====================================
 agent         learned                                stand-ins
 ============  =====================================  =====================================
-planner       :class:`LearnedPlanner` (a network)    :class:`RandomPlanner`, :class:`OraclePlannerPolicy`
+planner       :class:`LearnedPlanner` (a network)    :class:`RandomPlanner`, :class:`OraclePlannerPolicy`,
+                                                     :class:`MapPlannerPolicy`
 executor      :class:`LearnedExecutor` (a network)   :class:`RandomExecutor`, :class:`OracleExecutorPolicy`
 ============  =====================================  =====================================
 
@@ -29,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from plex_ma.envs.map_planner import MapPlanner
 from plex_ma.envs.oracle import OracleExecutor, OraclePlanner
 from plex_ma.envs.rules import ELI_DIM, PLANNER
 from plex_ma.envs.sim.core import STOP
@@ -84,15 +86,29 @@ class OraclePlannerPolicy:
         return {"stop": stop, "subgoal": sub}
 
 
+class MapPlannerPolicy:
+    """The shortest-path planner on the agent's own ego map (:mod:`plex_ma.envs.map_planner`):
+    the learned planner's observations only, no ground truth."""
+
+    learns, ground_truth, name = False, False, "map"
+
+    def __init__(self, env: PlexVectorEnv | None = None):
+        self.planner = MapPlanner()
+
+    def decide(self, obs: dict, rows: np.ndarray) -> dict:
+        stop, sub = self.planner.decide(obs)
+        return {"stop": stop, "subgoal": sub}
+
+
 class ImitatingPlanner:
-    """A learned planner that acts while the oracle planner's decision in the same state
-    is returned beside it (``teacher_stop``, ``teacher_subgoal``), for an imitation loss
-    (ground truth)."""
+    """A learned planner that acts while a teacher's decision in the same state is
+    returned beside it (``teacher_stop``, ``teacher_subgoal``), for an imitation loss."""
 
-    learns, ground_truth, name = True, True, "imitating"
+    learns, name = True, "imitating"
 
-    def __init__(self, learned: LearnedPlanner, teacher: OraclePlannerPolicy):
+    def __init__(self, learned: LearnedPlanner, teacher):
         self.learned, self.teacher = learned, teacher
+        self.ground_truth = teacher.ground_truth
 
     def decide(self, obs: dict, rows: np.ndarray) -> dict:
         teach = self.teacher.decide(obs, rows)  # before the decision is applied: the same state
@@ -244,19 +260,22 @@ class PlexDriver:
         return ExecutorStep(obs, starts, out, self.state, res)
 
 
-def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None, **random_kw):
+def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None,
+                 teacher: str = "oracle", **random_kw):
     """A planner policy by name: 'learned' (needs ``net``), 'imitating' (the learned one
-    with the oracle's decisions beside its own), 'random' or 'oracle'."""
+    with the ``teacher`` planner's decisions beside its own), 'random', 'oracle' or 'map'."""
     if kind in ("learn", "learned", "imitating"):
         if net is None:
             raise ValueError("a learned planner needs a network (a checkpoint)")
         learned = LearnedPlanner(net, deterministic)
-        return ImitatingPlanner(learned, OraclePlannerPolicy(env)) if kind == "imitating" else learned
+        return ImitatingPlanner(learned, make_planner(teacher, env)) if kind == "imitating" else learned
     if kind == "random":
         return RandomPlanner(rng=rng, **({"max_distance": env.config.rho_max} | random_kw))
     if kind == "oracle":
         return OraclePlannerPolicy(env)
-    raise ValueError(f"unknown planner {kind!r}; choose learned, random or oracle")
+    if kind == "map":
+        return MapPlannerPolicy(env)
+    raise ValueError(f"unknown planner {kind!r}; choose learned, random, oracle or map")
 
 
 def make_executor(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None):

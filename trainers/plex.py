@@ -17,10 +17,11 @@ PLEX runs through the rollout driver (:mod:`.driver`), per iteration:
 
 Either agent can be a stand-in that is not trained (``--planner random|oracle``,
 ``--executor oracle``: the shortest-path oracles use ground truth). A run can begin with
-phases (:func:`phase_at`) in which one agent learns while the other stands in or acts
-without learning: the warm-up (the ``warmup_planner`` on ``warmup_scenes``), the oracle
-sub-goals (the executor learns under the oracle planner) and the planner's imitation (the
-planner also learns to imitate the oracle planner's decisions in the states it visits).
+phases (:func:`phase_at`): the warm-up (the executor learns under the ``warmup_planner``
+on ``warmup_scenes``), the teacher's sub-goals (the executor learns under the ``teacher``
+planner: ``map``, shortest paths on the agent's own ego map, or the ground-truth
+``oracle``) and the planner's imitation (the planner also learns to imitate the teacher's
+decisions in the states it visits, DAgger-style).
 
 Stop-gradient: the ELI reaches the planner through the environment as a plain array, and
 the planner detaches it again inside its forward pass; the planner's optimiser holds only
@@ -73,7 +74,7 @@ def env_kwargs(cfg: TrainConfig, split: str = "train") -> dict:
     return kw
 
 
-PHASES = ("warmup", "oracle-subgoals", "planner-imitation", "main")
+PHASES = ("warmup", "teacher-subgoals", "planner-imitation", "main")
 
 
 @dataclass(frozen=True)
@@ -90,16 +91,16 @@ class Phase:
 def phase_at(cfg: TrainConfig, step: int) -> Phase:
     """The phase of a PLEX run at an environment step. In order, each for its number of
     steps: the warm-up (``planner_warmup_steps``: the warm-up planner, the executor learns),
-    the oracle sub-goals (``oracle_subgoal_steps``: the oracle planner, the executor
-    learns), the planner's imitation (``planner_imitation_steps``: the planner acts and
-    learns by PPO and by imitating the oracle planner, beside the executor), then the main
+    the teacher's sub-goals (``teacher_subgoal_steps``: the ``teacher`` planner, the
+    executor learns), the planner's imitation (``planner_imitation_steps``: the planner acts
+    and learns by PPO and by imitating the teacher, beside the executor), then the main
     phase (the agents as ``--planner`` / ``--executor`` say)."""
     learn_ex = cfg.executor == "learn"
-    ends = np.cumsum([cfg.planner_warmup_steps, cfg.oracle_subgoal_steps, cfg.planner_imitation_steps])
+    ends = np.cumsum([cfg.planner_warmup_steps, cfg.teacher_subgoal_steps, cfg.planner_imitation_steps])
     if step < ends[0]:
         return Phase("warmup", cfg.warmup_planner, False, learn_ex, bool(cfg.warmup_scenes))
     if step < ends[1]:
-        return Phase("oracle-subgoals", "oracle", False, True, False)
+        return Phase("teacher-subgoals", cfg.teacher, False, True, False)
     if step < ends[2]:
         return Phase("planner-imitation", "imitating", True, learn_ex, False)
     return Phase("main", cfg.planner, cfg.planner == "learn", learn_ex, False)
@@ -284,7 +285,7 @@ IMITATION_BATCH = 128
 
 
 class ImitationSet:
-    """Planner observations with the oracle planner's decisions in them, in a ring of
+    """Planner observations with the teacher planner's decisions in them, in a ring of
     ``capacity``; the ego map and the ELI are kept in float16 (the ego map's values are
     multiples of 1/4, exact in float16)."""
 
@@ -345,7 +346,7 @@ class PlexTrainer(Trainer):
                                  **kw)
         self.driver = PlexDriver(
             self.env,
-            make_planner(self.phase.planner, self.env, self.planner, rng=self.np_rng,
+            make_planner(self.phase.planner, self.env, self.planner, rng=self.np_rng, teacher=cfg.teacher,
                          max_distance=cfg.random_subgoal_distance, max_angle=cfg.random_subgoal_angle),
             make_executor(cfg.executor, self.env, self.executor))
         self.driver.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
@@ -449,7 +450,7 @@ class PlexTrainer(Trainer):
 
     def _imitate(self) -> dict:
         """Imitation steps of the planner (after every executor rollout of the phase) on
-        minibatches of the aggregate (DAgger): the negative log-likelihood of the oracle's
+        minibatches of the aggregate (DAgger): the negative log-likelihood of the teacher's
         decisions, on the planner's optimiser."""
         nll = []
         for _ in range(self.cfg.imitation_minibatches):
