@@ -294,3 +294,23 @@ def test_training_counts_episodes_ended_by_planner_stop(tmp_path):
     t.train()
     t.close()
     assert len(t.stats.success) >= 5  # no episode reaches max_steps: all of them ended by a stop
+
+
+def test_torch_threads_hold_after_the_simulator_starts(tmp_path):
+    """--torch-threads survives the simulator's first numba kernels (they share torch's
+    OpenMP runtime and set its thread count to numba's); checked in a fresh process."""
+    import subprocess
+    import sys
+
+    code = ("import dataclasses, torch\n"
+            "from plex_ma.config import preset_defaults\n"
+            "from plex_ma.trainers.plex import make_trainer\n"
+            f"cfg = dataclasses.replace(preset_defaults('smoke'), run_dir={str(tmp_path / 'run')!r}, total_steps=32,\n"
+            "    num_envs=2, rollout_steps=16, num_scenes=2, torch_threads=1, progress=False)\n"
+            "t = make_trainer(cfg)\n"
+            "t.train()\n"
+            "print('threads', torch.get_num_threads())\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "NUMBA_NUM_THREADS": "2", "OMP_NUM_THREADS": "2"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "threads 1" in out.stdout, out.stdout

@@ -144,8 +144,7 @@ class Trainer:
     def __init__(self, cfg: TrainConfig, log: bool = True):
         self.cfg = cfg
         self.dist = distributed.context()  # rank, world size; single-process unless torchrun started a group
-        if cfg.torch_threads:
-            torch.set_num_threads(cfg.torch_threads)
+        self._set_threads()
         torch.manual_seed(cfg.seed)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.nets = build_policies(cfg)
@@ -171,6 +170,13 @@ class Trainer:
             if self.dist.is_main:
                 print(f"fine-tuning the networks of {cfg.checkpoint}")
         distributed.sync_start(self)  # distributed: rank 0's parameters everywhere, samplers seeded apart
+
+    def _set_threads(self) -> None:
+        """torch's intra-op threads as configured. Called again after the worlds' first
+        reset: the simulator's numba kernels share torch's OpenMP runtime, and starting
+        them sets its thread count to numba's."""
+        if self.cfg.torch_threads:
+            torch.set_num_threads(self.cfg.torch_threads)
 
     # ---------------------------------------------------------------- checkpoints
     def state(self) -> dict:
@@ -350,6 +356,7 @@ class PlexTrainer(Trainer):
                          max_distance=cfg.random_subgoal_distance, max_angle=cfg.random_subgoal_angle),
             make_executor(cfg.executor, self.env, self.executor))
         self.driver.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
+        self._set_threads()
         n = cfg.num_envs
         self.turn_d0 = np.zeros(n)
         # The planner's pending transition per world (its decision waits for its reward and
@@ -567,6 +574,7 @@ class FlatTrainer(Trainer):
         cfg = self.cfg
         n, T = cfg.num_envs, cfg.rollout_steps
         obs = self.env.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
+        self._set_threads()
         state = self.policy.initial_state(n)
         starts = np.ones(n, np.bool_)
         ep_return = np.zeros(n)
