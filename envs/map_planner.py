@@ -105,7 +105,7 @@ class MapPlanner:
     name = "map"
     ground_truth = False
 
-    def __init__(self, cell: float = 0.5, lookahead: float = 2.0, stop_distance: float = 0.15):
+    def __init__(self, cell: float = 0.5, lookahead: float = 2.0, stop_distance: float = 0.19):
         self.cell, self.lookahead, self.stop_distance = float(cell), float(lookahead), float(stop_distance)
 
     def decide(self, obs: dict) -> tuple[np.ndarray, np.ndarray]:
