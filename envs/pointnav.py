@@ -18,8 +18,14 @@ One agent in the same world, episodes, sensors and rewards as ``plex_nav_v0``.
 Arguments: those of :class:`~plex_ma.envs.rules.NavConfig` plus ``render_mode``:
 "rgb_array" (``render()`` returns the top-down view) or "human" (the view in a live
 window after every ``reset`` and ``step``; one warning and nothing shown without a
-display, see :mod:`plex_ma.envs.viewer`). The batched version for trainers is
-:class:`~plex_ma.envs.vector.PointNavVectorEnv`.
+display, see :mod:`plex_ma.envs.viewer`).
+
+Batched versions: ``gymnasium.make_vec("plex_ma/PointNav-v0", num_envs=N, **config)``
+gives :class:`~plex_ma.envs.gym_vector.PointNavGymVectorEnv`, a gymnasium ``VectorEnv``
+that steps all N worlds in one call of the batched simulator (NEXT_STEP autoreset,
+batched spaces, infos as arrays with ``_key`` masks; with the same seeds and actions it
+returns what ``SyncVectorEnv`` over N of these envs returns). The project's own
+trainers use :class:`~plex_ma.envs.vector.PointNavVectorEnv`.
 """
 
 from __future__ import annotations

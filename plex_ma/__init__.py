@@ -16,7 +16,8 @@ def _register() -> None:
     import gymnasium
 
     if "plex_ma/PointNav-v0" not in gymnasium.registry:
-        gymnasium.register(id="plex_ma/PointNav-v0", entry_point="plex_ma.envs.pointnav:PointNavEnv")
+        gymnasium.register(id="plex_ma/PointNav-v0", entry_point="plex_ma.envs.pointnav:PointNavEnv",
+                           vector_entry_point="plex_ma.envs.gym_vector:PointNavGymVectorEnv")
 
 
 _register()

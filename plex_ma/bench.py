@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m plex_ma.bench {sim,env,geodesic,train,record} [options] [--json]``.
+"""Benchmarks: ``python -m plex_ma.bench {sim,env,gymvec,geodesic,train,record} [options] [--json]``.
 
 ``train`` times a short training (``--preset``, ``--method``, ``--steps``) end to end and
 reports steps/s, the shares of wall time in simulation, inference and the update, the
@@ -39,6 +39,20 @@ stops with a small probability, so episodes are long):
 ``geodesic`` times the sub-goal distance queries on one thread (``--queries`` random
 points and sub-goals up to 4 m away, snapped as the env snaps them): the corner graphs the
 env uses against A* on the same queries, with the largest difference between the two.
+
+``gymvec`` times ``gymnasium.make_vec("plex_ma/PointNav-v0", num_envs=N)`` (the batched
+vector env, ``vectorization_mode="vector_entry_point"``) against gymnasium's
+``SyncVectorEnv`` of N single ``PointNav-v0`` envs (``vectorization_mode="sync"``, each
+with ``make``'s checker wrappers), both from the same seed and given the same random
+actions drawn before timing: the two run the same episodes in lockstep, and the bench
+checks that their observations still agree after every round (``identical``). Actions
+are random moves, STOP with probability ``--stop-prob`` (0: episodes run to
+``--max-steps`` and truncate). The two are timed in ``--rounds`` alternating rounds (after
+``--warmup`` untimed steps of each), the first of each round alternating too;
+``speedup`` is the batched env's steps/s over the sync one's, overall and
+``speedup_min``/``_median``/``_max`` over the rounds; ``speedup_cpu`` the same per second
+of process CPU time. Episode resets (sampling an episode with its Dijkstra field, about
+3 ms) cost the same in both, so frequent episode ends lower the speedup.
 
 ``record`` times the cost of the rerun recordings made during training: the same short
 training (``--preset``, ``--updates`` executor updates, fresh run dirs) once without
@@ -275,6 +289,68 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
             "machine": machine()}
 
 
+def bench_gymvec(num_envs: int = 16, resolution: int = 64, steps: int = 300, seed: int = 0, scenes: str = "procgen",
+                 num_scenes: int | None = None, rounds: int = 10, warmup: int = 20, stop_prob: float = 0.0,
+                 max_steps: int = 500) -> dict:
+    """The batched gymnasium vector env against ``SyncVectorEnv`` of single envs, in
+    alternating rounds on the same actions (see the module docstring)."""
+    import gymnasium
+
+    import plex_ma  # noqa: F401  (registers the env)
+
+    cfg = dict(resolution=resolution, scenes=scenes, num_scenes=num_scenes, max_steps=max_steps)
+    envs = {"vector": gymnasium.make_vec("plex_ma/PointNav-v0", num_envs=num_envs,
+                                         vectorization_mode="vector_entry_point", **cfg),
+            "sync": gymnasium.make_vec("plex_ma/PointNav-v0", num_envs=num_envs, vectorization_mode="sync", **cfg)}
+    last = {name: e.reset(seed=seed)[0] for name, e in envs.items()}
+    rng = np.random.default_rng(seed)
+    n = num_envs
+
+    def actions(calls: int) -> np.ndarray:
+        return np.where(rng.random((calls, n)) < stop_prob, 0, rng.integers(1, 4, (calls, n)))
+
+    ended = {"count": 0}
+
+    def run(name: str, acts: np.ndarray) -> tuple[float, float]:
+        env = envs[name]
+        t, c = time.perf_counter(), time.process_time()
+        for a in acts:
+            obs, _, term, trunc, _ = env.step(a)
+            if name == "vector":
+                ended["count"] += int(np.sum(term | trunc))
+        last[name] = obs
+        return time.perf_counter() - t, time.process_time() - c
+
+    def same() -> bool:
+        return all(np.array_equal(last["vector"][k], last["sync"][k]) for k in last["sync"])
+
+    warm = actions(warmup)
+    for name in envs:
+        run(name, warm)
+    identical = same()
+    ended["count"] = 0
+    rounds = max(1, min(rounds, steps))
+    wall = {"vector": [], "sync": []}
+    cpu = {"vector": [], "sync": []}
+    for k in range(rounds):
+        acts = actions(steps // rounds + (k < steps % rounds))
+        for name in (("vector", "sync") if k % 2 == 0 else ("sync", "vector")):
+            dt, dc = run(name, acts)
+            wall[name].append(dt / len(acts))
+            cpu[name].append(dc / len(acts))
+        identical &= same()
+    for e in envs.values():
+        e.close()
+    per_round = np.array(wall["sync"]) / np.array(wall["vector"])
+    vec_s, sync_s = sum(wall["vector"]) / rounds, sum(wall["sync"]) / rounds
+    return {"benchmark": "gymvec", "num_envs": num_envs, "resolution": resolution, "steps": steps * n,
+            "stop_prob": stop_prob, "max_steps": max_steps,
+            "vector_steps_per_second": n / vec_s, "sync_steps_per_second": n / sync_s, "speedup": sync_s / vec_s,
+            "speedup_min": float(per_round.min()), "speedup_median": float(np.median(per_round)),
+            "speedup_max": float(per_round.max()), "speedup_cpu": sum(cpu["sync"]) / sum(cpu["vector"]),
+            "episodes_ended": ended["count"], "rounds": rounds, "identical": bool(identical), "machine": machine()}
+
+
 def bench_record(preset: str = "cpu", updates: int = 20, record_interval: int = 10, default_interval: int | None = None,
                  seed: int = 0, method: str = "plex-gru") -> dict:
     """Training time with and without recordings (see the module docstring)."""
@@ -363,6 +439,13 @@ def main(argv: list[str] | None = None) -> None:
     pe.add_argument("--aec-turns", type=int, default=2000, help="AEC turns to time")
     pe.add_argument("--planner-stop-prob", type=float, default=0.01, help="chance that a planner action is STOP")
     pe.add_argument("--executor-stop-prob", type=float, default=0.1, help="chance that an executor action is STOP")
+    pv = sub.add_parser("gymvec", help="make_vec's batched PointNav vector env against SyncVectorEnv of single envs")
+    common(pv, 300, "vector steps to time (each env gets as many)")
+    pv.set_defaults(num_envs=16, resolution=64)
+    pv.add_argument("--rounds", type=int, default=10, help="alternate the two envs this many times")
+    pv.add_argument("--warmup", type=int, default=20, help="untimed steps of each before timing")
+    pv.add_argument("--stop-prob", type=float, default=0.0, help="chance that an action is STOP (ends the episode)")
+    pv.add_argument("--max-steps", type=int, default=500, help="actions before an episode truncates")
     pg = sub.add_parser("geodesic", help="sub-goal distance queries: corner graphs against A*, one thread")
     pg.add_argument("--queries", type=int, default=4000, help="queries to time")
     pg.add_argument("--astar-queries", type=int, default=500, help="of those, how many A* answers too")
@@ -406,6 +489,9 @@ def main(argv: list[str] | None = None) -> None:
         out["machine"] = machine()
     elif a.what == "sim":
         out = bench_sim(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, a.num_scenes)
+    elif a.what == "gymvec":
+        out = bench_gymvec(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, a.num_scenes, rounds=a.rounds,
+                           warmup=a.warmup, stop_prob=a.stop_prob, max_steps=a.max_steps)
     elif a.what == "geodesic":
         out = bench_geodesic(a.queries, a.seed, a.scenes, a.num_scenes, astar_queries=a.astar_queries)
     elif a.what == "record":
