@@ -20,7 +20,7 @@ COMMANDS = {
     "record": "record episodes of a checkpoint or of stand-in agents to a Rerun .rrd file",
     "pretrained": "list the agents shipped in the package, or export a checkpoint as one",
     "experiments": "run the paper's experiments (Table 1, Fig. 3, ...); with no name, list them",
-    "bench": "benchmarks: simulator, environments, geodesics, training and recording speed",
+    "bench": "benchmarks: simulator, environments, gymnasium vector env, geodesics, training and recording speed",
     "episodes": "make or summarise fixed evaluation episode files",
     "scenes": "check scene sources (procgen, r2v, a directory of plans) or render them top-down",
 }
