@@ -263,15 +263,17 @@ def test_phases_teacher_subgoals_then_imitation_then_main(tmp_path):
 
 @pytest.mark.slow
 def test_plex_learns_to_reach_the_goal(tmp_path):
-    """PLEX end to end with the cpu preset's recipe in an open room (100-step episodes, 8
-    worlds): 6k steps of executor warm-up under random sub-goals (40-step episodes), then
-    both agents learn. No episode succeeds at first (reward below 0: slack and collisions);
-    by 20k steps (about a minute of two cores) at least 5% of the last 100 training episodes
-    (sampled actions) succeed and their reward is above 2."""
+    """PLEX end to end with the cpu preset's recipe, its phases shortened, in an open room
+    (100-step episodes, 8 worlds): 4k steps of executor warm-up under random sub-goals
+    (40-step episodes), 4k under the map planner, 4k of the planner's imitation of the map
+    planner, then both agents learn by PPO. No episode succeeds at first (reward below 0:
+    slack and collisions); by 20k steps (about a minute of two cores) at least 5% of the
+    last 100 training episodes (sampled actions) succeed and their reward is above 2."""
     cfg = dataclasses.replace(
         preset_defaults("cpu"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1, max_steps=100,
-        num_envs=8, rollout_steps=32, planner_warmup_steps=6_000, total_steps=20_000, progress=False,
-        checkpoint_interval=1000, record_interval=0)
+        num_envs=8, rollout_steps=32, planner_warmup_steps=4_000, teacher_subgoal_steps=4_000,
+        planner_imitation_steps=4_000, total_steps=20_000, progress=False, checkpoint_interval=1000,
+        record_interval=0)
     t = make_trainer(validate(cfg))
     t.train()
     t.close()
