@@ -16,10 +16,10 @@ $(VENV)/.installed: pyproject.toml
 
 setup: $(VENV)/.installed
 
-# The main job: a short PLEX-GRU training with the cpu preset on the default procedural
-# scenes (the run that pretrained:plex-gru comes from), then a greedy evaluation on 100
-# fixed validation episodes.
-TRAIN_STEPS ?= 120000
+# The main job: PLEX-GRU with the cpu preset on the default procedural scenes, through the
+# preset's curriculum phases (450k steps) and 10k steps of PPO after them, then a greedy
+# evaluation on 100 fixed validation episodes.
+TRAIN_STEPS ?= 460000
 RUN_DIR ?= runs/quickstart
 train: $(VENV)/.installed
 	$(PY) -m plex_ma.train --preset cpu --method plex-gru --total-steps $(TRAIN_STEPS) --run-dir $(RUN_DIR)
