@@ -164,3 +164,36 @@ def test_stop_and_inactive_worlds_do_not_move():
     sim.step(np.array([MOVE_FORWARD, MOVE_FORWARD]), active=np.array([False, True]))
     np.testing.assert_array_equal(sim.pos[0], [1.0, 1.0])
     np.testing.assert_allclose(sim.pos[1], [1.5, 1.0])
+
+
+def test_moves_never_squeeze_between_diagonal_cells():
+    # Two navigable squares of the grid that touch only at a corner form two components
+    # (the geodesic search links 4-neighbours only). No forward move may take the agent
+    # from one to the other: its sub-goal, snapped into its component, would be cut off.
+    import dataclasses
+
+    from scipy import ndimage
+
+    room = rasterize(Scene("box", np.array(room_walls(0.0, 0.0, 4.0, 4.0))))
+    nav = np.zeros_like(room.nav)
+    nav[20:40, 20:40] = True  # square A
+    nav[40:60, 40:60] = True  # square B, touching A at the corner of cells (39, 39) and (40, 40)
+    comp, n = ndimage.label(nav)
+    assert n == 2
+    grid = dataclasses.replace(room, nav=nav, component=comp.astype(np.int32) - 1)
+    bank = SceneBank([grid])
+    cs = grid.cell_size
+    corner = np.array(grid.origin) + 40 * cs
+    crossed = 0
+    for deg in np.arange(30.0, 60.0, 0.7):
+        for back in (0.05, 0.13, 0.3):
+            h = math.radians(deg)
+            start = corner - back * np.array([math.cos(h), math.sin(h)])
+            if not grid.is_navigable(start):
+                continue
+            sim = sim_at(bank, start, h, resolution=8, egomap=False)
+            for _ in range(4):
+                sim.step(np.array([MOVE_FORWARD]))
+                r, c = np.floor((sim.pos[0] - grid.origin) / cs).astype(int)[::-1]
+                crossed += grid.component[r, c] != grid.component[39, 39]
+    assert crossed == 0

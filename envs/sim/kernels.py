@@ -263,20 +263,28 @@ def render(kind, g_off, g_h, g_w, g_ox, g_oy, cs, klo, khi, kmat, kroom,
 
 @njit(cache=True, inline="always")
 def _try_move(nav, off, h, w, ox, oy, cs, x, y, dx, dy):
-    """Move from (x, y) by (dx, dy) while every sampled point is navigable."""
+    """Move from (x, y) by (dx, dy) while every sampled point is navigable and no step
+    between sampled cells squeezes diagonally between two blocked cells (the move would
+    leave the agent's connected component, which only 4-neighbour links form)."""
     L = math.sqrt(dx * dx + dy * dy)
     n = int(math.ceil(L / (cs * 0.25)))
     if n < 1:
         return x, y, False
     bx = x
     by = y
+    br, bc = _cell(ox, oy, cs, x, y)
     for k in range(1, n + 1):
         cx = x + dx * k / n
         cy = y + dy * k / n
         if not is_nav(nav, off, h, w, ox, oy, cs, cx, cy):
             return bx, by, True
+        r, c = _cell(ox, oy, cs, cx, cy)
+        if r != br and c != bc and nav[off + br * w + c] == 0 and nav[off + r * w + bc] == 0:
+            return bx, by, True
         bx = cx
         by = cy
+        br = r
+        bc = c
     return bx, by, False
 
 
