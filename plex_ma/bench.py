@@ -473,6 +473,7 @@ def main(argv: list[str] | None = None) -> None:
     pt.add_argument("--seed", type=int, default=0)
     pt.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a TrainConfig field, e.g. --set num_minibatches=4 (repeatable)")
+    pt.add_argument("--device", default="auto", help="where the networks run: auto (CUDA when present), cpu, cuda, cuda:N")
     pt.add_argument("--json", action="store_true", help="print one JSON object")
     a = p.parse_args(argv)
     if a.what == "train":
@@ -485,7 +486,7 @@ def main(argv: list[str] | None = None) -> None:
                 p.error(f"--set expects FIELD=VALUE, got {item!r}")
             overrides[key.strip()] = value.strip()
         try:
-            out = bench_train(a.preset, a.method, a.steps, a.num_envs, a.resolution, a.seed, overrides)
+            out = bench_train(a.preset, a.method, a.steps, a.num_envs, a.resolution, a.seed, overrides, a.device)
         except ValueError as e:
             p.error(str(e))
         out["machine"] = machine()

@@ -41,19 +41,23 @@ def model_flops_per_step(model: torch.nn.Module, batch: int = 1, by_module: bool
     return total, modules
 
 
-def matmul_gflops(n: int = 1024, seconds: float = 0.3, trials: int = 5, dtype: torch.dtype = torch.float32) -> float:
-    """Peak GFLOP/s of (n x n) @ (n x n) matmuls on the CPU with torch's current threads: the
-    best of ``trials`` runs of about ``seconds`` each, after one warm-up. (A single run
-    varies by up to 2x on a shared machine; the best run is the machine's peak.)"""
-    a, b = torch.randn(n, n, dtype=dtype), torch.randn(n, n, dtype=dtype)
-    out = torch.empty(n, n, dtype=dtype)
+def matmul_gflops(n: int = 1024, seconds: float = 0.3, trials: int = 5, dtype: torch.dtype = torch.float32,
+                  device: str | torch.device = "cpu") -> float:
+    """Peak GFLOP/s of (n x n) @ (n x n) matmuls on ``device`` (the CPU: with torch's current
+    threads): the best of ``trials`` runs of about ``seconds`` each, after one warm-up. (A
+    single run varies by up to 2x on a shared machine; the best run is the machine's peak.)"""
+    a, b = torch.randn(n, n, dtype=dtype, device=device), torch.randn(n, n, dtype=dtype, device=device)
+    out = torch.empty(n, n, dtype=dtype, device=device)
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
     torch.mm(a, b, out=out)
+    sync()
     best = 0.0
     for _ in range(trials):
         reps, t0 = 0, time.perf_counter()
         while True:
             torch.mm(a, b, out=out)
             reps += 1
+            sync()
             dt = time.perf_counter() - t0
             if dt >= seconds:
                 break
@@ -62,7 +66,8 @@ def matmul_gflops(n: int = 1024, seconds: float = 0.3, trials: int = 5, dtype: t
 
 
 def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192, num_envs: int | None = None,
-                resolution: int | None = None, seed: int = 0, overrides: dict[str, str] | None = None) -> dict:
+                resolution: int | None = None, seed: int = 0, overrides: dict[str, str] | None = None,
+                device: str = "auto") -> dict:
     """End-to-end training throughput of a short run (``python -m plex_ma.bench train``).
 
     Reports steps/s, the shares of wall time in simulation, inference and the update, the
@@ -75,10 +80,11 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
     import tempfile
 
     from plex_ma.config import preset_defaults, validate
+    from plex_ma.trainers.device import describe
     from plex_ma.trainers.plex import make_trainer
 
     cfg = preset_defaults(preset, method)
-    over = {"total_steps": steps, "progress": False, "seed": seed, "checkpoint_interval": 10**9}
+    over = {"total_steps": steps, "progress": False, "seed": seed, "checkpoint_interval": 10**9, "device": device}
     if num_envs:
         over["num_envs"] = num_envs
     if resolution:
@@ -104,11 +110,11 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
         trainer = make_trainer(cfg, log=True)
         result = trainer.train()
         trainer.close()
-    flops = {k: model_flops_per_step(m) for k, m in trainer.nets.items()}
+    flops = {k: model_flops_per_step(m.cpu()) for k, m in trainer.nets.items()}
     worker = "executor" if "executor" in flops else "policy"
     if cfg.torch_threads:
         torch.set_num_threads(cfg.torch_threads)
-    peak = matmul_gflops()
+    peak = matmul_gflops(device=trainer.device)
     update_s = result["perf/share_update"] * steps / result["perf/fps"]
     # forward + backward ~ 3x the forward FLOPs, per stored transition and epoch
     n_worker = trainer.updates[worker] * cfg.num_envs * cfg.rollout_steps
@@ -121,4 +127,4 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
             "share_update": result["perf/share_update"], "share_other": result["perf/share_other"],
             "model_flops_per_step": flops,
             "matmul_gflops": peak, "update_gflops": achieved, "update_efficiency": achieved / peak,
-            "torch_threads": torch.get_num_threads(), "overrides": dict(overrides or {})}
+            "torch_threads": torch.get_num_threads(), **describe(trainer.device), "overrides": dict(overrides or {})}

@@ -122,6 +122,8 @@ class TrainConfig:
     """updates between rerun recordings of an episode into the run dir (0: never)"""
     torch_threads: int = 0
     """torch intra-op threads (0: torch's default)"""
+    device: str = "auto"
+    """where the networks, rollouts and PPO updates run: auto (CUDA when present), cpu, cuda or cuda:N (the simulator stays on the CPU)"""
     progress: bool = True
     """show a progress bar"""
     dist_timeout: float = 300.0
@@ -209,6 +211,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.rho_max > 0.5, "rho_max", "must be above 0.5 m")
     need(0.5 < cfg.random_subgoal_distance <= cfg.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")
+    need(cfg.device in ("auto", "cpu", "cuda") or cfg.device.startswith("cuda:"), "device",
+         "must be auto, cpu, cuda or cuda:N")
     return cfg
 
 

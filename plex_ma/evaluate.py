@@ -26,14 +26,16 @@ from plex_ma.envs.rules import CLOSE_FAR_SPLIT, PLANNER
 from plex_ma.envs.sim import generate_episodes, load_episodes
 from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
 from plex_ma.trainers.checkpoint import CheckpointError, load_checkpoint
+from plex_ma.trainers.device import DeviceError, resolve_device
 from plex_ma.trainers.driver import PlexDriver, make_executor, make_planner
 from plex_ma.trainers.plex import build_policies, env_kwargs, saved_config
 
 METRICS = ("success", "spl", "reward", "distance_to_goal", "collisions")
 
 
-def load_policies(path: str | Path) -> tuple[TrainConfig, dict]:
-    """The config and networks stored in a checkpoint (loaded with ``weights_only=True``)."""
+def load_policies(path: str | Path, device: str | torch.device = "cpu") -> tuple[TrainConfig, dict]:
+    """The config and networks stored in a checkpoint (loaded with ``weights_only=True``),
+    on ``device``."""
     state = load_checkpoint(path)
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     cfg = TrainConfig(**{k: v for k, v in saved_config(state).items() if k in known})
@@ -41,7 +43,7 @@ def load_policies(path: str | Path) -> tuple[TrainConfig, dict]:
     try:
         for k, m in nets.items():
             m.load_state_dict(state["models"][k])
-            m.eval()
+            m.eval().to(device)
     except (KeyError, RuntimeError) as e:
         raise CheckpointError(f"checkpoint {path}: its weights do not match method {cfg.method}: {e}") from None
     return cfg, nets
@@ -132,7 +134,7 @@ def _run_episodes(cfg, nets, split, episodes, scenes, num_envs, episodes_file, r
         ret = np.zeros(num_envs)
         while len(results) < len(eps):
             out, state = policy.act(obs, state, starts, deterministic=not sample)
-            obs, rew, term, trunc, infos = env.step(out["action"].numpy())
+            obs, rew, term, trunc, infos = env.step(out["action"].cpu().numpy())
             if recorder is not None:
                 recorder.step(env, (obs, rew, term, trunc, infos))
             ret += rew
@@ -188,16 +190,21 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--record", default=None, help="also record the episodes to this .rrd file (rerun)")
     p.add_argument("--torch-threads", type=int, default=1,
                    help="torch threads (1: small batches run fastest on a small, shared machine)")
+    p.add_argument("--device", default="auto", help="where the networks run: auto (CUDA when present), cpu, cuda, cuda:N")
     a = p.parse_args(argv)
     if a.torch_threads > 0:
         torch.set_num_threads(a.torch_threads)
+    try:
+        device = resolve_device(a.device)
+    except DeviceError as e:
+        p.error(str(e))
     if a.episodes < 1:
         p.error("--episodes must be >= 1")
     needs_nets = a.checkpoint is not None or "learned" in (a.planner, a.executor)
     if a.checkpoint is None and needs_nets:
         p.error("--checkpoint is needed unless neither --planner nor --executor is learned")
     try:
-        cfg, nets = load_policies(a.checkpoint) if a.checkpoint else (TrainConfig(), {})
+        cfg, nets = load_policies(a.checkpoint, device) if a.checkpoint else (TrainConfig(), {})
     except CheckpointError as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2)

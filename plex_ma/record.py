@@ -43,7 +43,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--no-images", action="store_true", help="leave out the RGB, depth and ego map images")
     p.add_argument("--spawn", action="store_true", help="also stream live to a Rerun viewer (needs a display)")
     p.add_argument("--topdown-png", default=None, help="also write the top-down picture of the last episode here")
+    p.add_argument("--device", default="auto", help="where the networks run: auto (CUDA when present), cpu, cuda, cuda:N")
     a = p.parse_args(argv)
+    from plex_ma.trainers.device import DeviceError, resolve_device
+
+    try:
+        device = resolve_device(a.device)
+    except DeviceError as e:
+        p.error(str(e))
     if a.episodes < 1:
         p.error("--episodes must be >= 1")
     if a.policy == "random":
@@ -69,7 +76,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     torch.set_num_threads(1)
     if a.checkpoint:
         try:
-            cfg, nets = load_policies(a.checkpoint)
+            cfg, nets = load_policies(a.checkpoint, device)
         except CheckpointError as e:
             print(f"error: {e}", file=sys.stderr)
             raise SystemExit(2)

@@ -31,13 +31,22 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     from plex_ma.trainers import distributed
+    from plex_ma.trainers.device import DeviceError, resolve_device
     from plex_ma.trainers.plex import make_trainer
 
-    ctx = distributed.init_from_env(cfg.dist_timeout)  # torchrun with WORLD_SIZE > 1: join the group
+    try:
+        device = resolve_device(cfg.device)
+    except DeviceError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    # torchrun with WORLD_SIZE > 1: join the group (nccl, each rank on its LOCAL_RANK GPU,
+    # when the networks run on CUDA; gloo on the CPU)
+    ctx = distributed.init_from_env(cfg.dist_timeout, backend=None if device.type == "cuda" else "gloo")
     workers = f" per worker x {ctx.world_size} workers ({ctx.backend})" if ctx.active else ""
     if ctx.is_main:
         print(f"training {cfg.method}{'' if cfg.eli or not cfg.method.startswith('plex') else ' (no ELI)'} "
-              f"for {cfg.total_steps:,} steps with {cfg.num_envs} worlds{workers} at {cfg.resolution} px -> {cfg.run_dir}")
+              f"for {cfg.total_steps:,} steps with {cfg.num_envs} worlds{workers} at {cfg.resolution} px on {ctx.device if ctx.active else device} "
+              f"-> {cfg.run_dir}")
     from plex_ma.trainers.checkpoint import CheckpointError
 
     with distributed.graceful_stop():

@@ -11,8 +11,9 @@ parameters and the models never drift apart; no parameter server, no central lea
 - The process group starts only when torchrun's variables (``RANK``, ``WORLD_SIZE``,
   ``LOCAL_RANK``, ``MASTER_ADDR``, ``MASTER_PORT``) say ``WORLD_SIZE > 1``; otherwise nothing
   here does anything and training is the single-process trainer, same code path.
-- Backend: nccl when CUDA is available, else gloo (``PLEX_DIST_BACKEND`` overrides). With
-  nccl the (CPU) gradients go through this worker's GPU for the all-reduce.
+- Backend: nccl when the networks run on CUDA (``--device``), each rank on its
+  ``LOCAL_RANK`` GPU; gloo when they run on the CPU. ``PLEX_DIST_BACKEND`` overrides it for
+  CUDA runs (with nccl, CPU tensors go through the worker's GPU for the all-reduce).
 - Every collective has a finite timeout (``--dist-timeout`` seconds, also used for the
   start-up rendezvous). A worker that dies or hangs makes the others fail with
   :class:`WorkerLost`, whose message says so, instead of waiting forever.

@@ -51,6 +51,8 @@ class LearnedPlanner:
         """stop (k,) int64 and subgoal (k, 2) float32 for the env; raw, log_prob, value for PPO."""
         with torch.no_grad():
             out = self.net.act(obs, deterministic=self.deterministic)
+        # decisions are few: everything comes back to the CPU, where their transitions wait
+        out = {k: v.cpu() for k, v in out.items()}
         return {"stop": out["stop"].numpy().astype(np.int64), "subgoal": out["subgoal_env"].numpy(),
                 "raw": out["subgoal"], "log_prob": out["log_prob"], "value": out["value"]}
 
@@ -132,7 +134,7 @@ class LearnedExecutor:
 
     def act(self, obs: dict, state, starts: np.ndarray):
         out, state = self.net.act(obs, state, starts, deterministic=self.deterministic)
-        return {"action": out["action"].numpy(), "eli": out["eli"].numpy(), "log_prob": out["log_prob"],
+        return {"action": out["action"].cpu().numpy(), "eli": out["eli"].cpu().numpy(), "log_prob": out["log_prob"],
                 "value": out["value"]}, state
 
 

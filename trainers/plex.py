@@ -45,6 +45,7 @@ from plex_ma.networks import Executor, FlatPolicy, Planner
 
 from . import distributed
 from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from .device import resolve_device
 from .driver import Decision, PlexDriver, make_executor, make_planner
 from .logger import MetricLogger
 from .ppo import PPOConfig, RolloutBuffer, compute_gae, ppo_update
@@ -147,7 +148,10 @@ class Trainer:
         self._set_threads()
         torch.manual_seed(cfg.seed)
         self.gen = torch.Generator().manual_seed(cfg.seed)
-        self.nets = build_policies(cfg)
+        self.device = resolve_device(cfg.device)
+        if self.device.type == "cuda" and self.dist.world_size > 1:  # torchrun: each rank on its LOCAL_RANK GPU
+            self.device = torch.device("cuda", self.dist.local_rank)
+        self.nets = {k: m.to(self.device) for k, m in build_policies(cfg).items()}
         lrs = {"planner": cfg.planner_lr or cfg.lr}
         self.opts = {k: torch.optim.Adam(m.parameters(), lr=lrs.get(k, cfg.lr), eps=1e-5) for k, m in self.nets.items()}
         self.ppo = PPOConfig(clip_coef=cfg.clip, vf_coef=cfg.value_coef, ent_coef=cfg.entropy_coef,
@@ -441,13 +445,13 @@ class PlexTrainer(Trainer):
             a = delta[t] + (0.0 if (last[t] or done[t]) else g * lam * a)
             adv[t] = a
         idx = torch.as_tensor(order)
-        buf = RolloutBuffer(1, m)
+        buf = RolloutBuffer(1, m, self.device)
         buf.add(0, obs={k[4:]: v[idx] for k, v in cat.items() if k.startswith("obs/")},
                 actions={"stop": cat["stop"][idx], "subgoal": cat["subgoal"][idx]},
                 log_probs=cat["log_prob"][idx], values=torch.as_tensor(value), rewards=torch.zeros(m),
                 dones=torch.zeros(m, dtype=torch.bool))
-        buf.data["advantages"] = torch.as_tensor(adv)[None]
-        buf.data["returns"] = torch.as_tensor(adv + value)[None]
+        buf.data["advantages"] = torch.as_tensor(adv, device=self.device)[None]
+        buf.data["returns"] = torch.as_tensor(adv + value, device=self.device)[None]
         ppo = dataclasses.replace(self.ppo, num_minibatches=self.cfg.planner_minibatches)
         if self.cfg.planner_entropy_coef is not None:
             ppo = dataclasses.replace(ppo, ent_coef=self.cfg.planner_entropy_coef)
@@ -462,7 +466,7 @@ class PlexTrainer(Trainer):
         nll = []
         for _ in range(self.cfg.imitation_minibatches):
             obs, stop, subgoal = self.imitation.sample(IMITATION_BATCH, self.gen)
-            loss = self.planner.imitation_loss(obs, stop, subgoal).mean()
+            loss = self.planner.imitation_loss(obs, stop.to(self.device), subgoal.to(self.device)).mean()
             self.opts["planner"].zero_grad()
             loss.backward()
             distributed.average_gradients(self.planner)
@@ -476,7 +480,7 @@ class PlexTrainer(Trainer):
         """V of executor observations with the given memory, continuing the sequence."""
         with torch.no_grad():
             _, value, _, _ = self.executor(obs, state, torch.zeros(len(state), dtype=torch.bool))
-        return value.numpy()
+        return value.cpu().numpy()
 
     def _bootstrap(self, res, state, trunc: np.ndarray) -> np.ndarray:
         """V(observation after the last action) of turns cut at N_EX or by max_steps, with
@@ -508,7 +512,7 @@ class PlexTrainer(Trainer):
             drv = self.driver
             learn_ex = drv.executor.learns and self.phase.learn_executor
             learn_pl = self._learn_planner = drv.planner.learns and self.phase.learn_planner
-            buf = RolloutBuffer(T, n)
+            buf = RolloutBuffer(T, n, self.device)
             if learn_ex:
                 buf.initial_state = drv.state.clone()
             for t in range(T):
@@ -580,14 +584,14 @@ class FlatTrainer(Trainer):
         ep_return = np.zeros(n)
         bar, last_log, t_start, s_start, timing = self._loop_start()
         while self.step < cfg.total_steps:
-            buf = RolloutBuffer(T, n)
+            buf = RolloutBuffer(T, n, self.device)
             buf.initial_state = state.clone()
             for t in range(T):
                 t0 = time.perf_counter()
                 out, state = self.policy.act(obs, state, starts)
                 obs_t = {k: np.array(v) for k, v in obs.items()}
                 t1 = time.perf_counter()
-                obs, rew, term, trunc, infos = self.env.step(out["action"].numpy())
+                obs, rew, term, trunc, infos = self.env.step(out["action"].cpu().numpy())
                 t2 = time.perf_counter()
                 ended = term | trunc
                 # A time-limit truncation is treated as terminal (the final observation is
