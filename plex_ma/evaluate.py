@@ -68,7 +68,9 @@ def run_episodes(cfg: TrainConfig, nets: dict, split: str = "test", episodes: in
     RNG: a caller's random stream, e.g. a training run's, is left as it was). For PLEX,
     ``planner`` and ``executor`` pick each agent's policy: 'learned' (the network in
     ``nets``), 'oracle' (shortest-path, ground truth) or 'random'."""
-    with torch.no_grad(), torch.random.fork_rng():
+    devices = {p.device for net in nets.values() for p in net.parameters() if p.device.type == "cuda"}
+    # fork only the generators in use (forking all of them would start every visible GPU)
+    with torch.no_grad(), torch.random.fork_rng(devices=[d.index or 0 for d in devices]):
         torch.manual_seed(seed)
         return _run_episodes(cfg, nets, split, episodes, scenes, num_envs, episodes_file, recorder, sample, planner,
                              executor, seed)

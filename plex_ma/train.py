@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> dict:
     workers = f" per worker x {ctx.world_size} workers ({ctx.backend})" if ctx.active else ""
     if ctx.is_main:
         print(f"training {cfg.method}{'' if cfg.eli or not cfg.method.startswith('plex') else ' (no ELI)'} "
-              f"for {cfg.total_steps:,} steps with {cfg.num_envs} worlds{workers} at {cfg.resolution} px on {ctx.device if ctx.active else device} "
+              f"for {cfg.total_steps:,} steps with {cfg.num_envs} worlds{workers} at {cfg.resolution} px on {f'cuda:{ctx.local_rank}' if ctx.active and device.type == 'cuda' else device} "
               f"-> {cfg.run_dir}")
     from plex_ma.trainers.checkpoint import CheckpointError
 

@@ -146,7 +146,7 @@ def average_gradients(params: nn.Module | Iterable[nn.Parameter]) -> None:
     params = [p for p in (params.parameters() if isinstance(params, nn.Module) else params) if p.requires_grad]
     if not params:
         return
-    has = torch.tensor([p.grad is not None for p in params], dtype=torch.float32)
+    has = torch.tensor([p.grad is not None for p in params], dtype=torch.float32, device=params[0].device)
     flat = torch.cat([(p.grad.detach() if p.grad is not None else torch.zeros_like(p)).reshape(-1).float()
                       for p in params] + [has])
     flat = _all_reduce(flat, dist.ReduceOp.SUM, "the gradient all-reduce")

@@ -188,7 +188,9 @@ class Trainer:
                 "updates": dict(self.updates),
                 "models": {k: m.state_dict() for k, m in self.nets.items()},
                 "optimizers": {k: o.state_dict() for k, o in self.opts.items()},
-                "torch_rng": torch.get_rng_state(), "sampler_rng": self.gen.get_state()}
+                "torch_rng": torch.get_rng_state(), "sampler_rng": self.gen.get_state(),
+                # actions sampled on a GPU draw from its generator
+                **({"cuda_rng": torch.cuda.get_rng_state(self.device)} if self.device.type == "cuda" else {})}
 
     def load_weights(self, state: dict, what: str = "the checkpoint") -> None:
         """The networks' weights from a checkpoint whose architecture settings match this run's."""
@@ -219,6 +221,8 @@ class Trainer:
         self.updates = {k: int(v) for k, v in state["updates"].items()}
         torch.set_rng_state(state["torch_rng"])
         self.gen.set_state(state["sampler_rng"])
+        if "cuda_rng" in state and self.device.type == "cuda":
+            torch.cuda.set_rng_state(state["cuda_rng"], self.device)
 
     def save(self) -> None:
         if not self.dist.is_main:
