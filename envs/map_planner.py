@@ -4,10 +4,6 @@
 cells, row 0 ahead of the agent, column 0 to its left; channel 0 obstacles) and the goal
 vector (distance, direction). It plans optimistically, as frontier-free map-based
 navigation does: cells never seen count as free, observed obstacle cells are blocked.
-Its paths keep to what the agent has seen and away from walls: a step into a cell never
-seen costs ``unseen_cost`` times its length, and a step into a cell beside an observed
-obstacle ``wall_cost`` lengths more. Such sub-goals suit an executor that sees only its
-camera; docs/results.md has the measurements behind the default costs.
 
 - It stops once the goal is nearer than ``stop_distance`` (Euclidean, from the goal
   vector).
@@ -35,7 +31,7 @@ _NEIGHBOURS = np.array([(-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1,
 
 
 @njit(cache=True)
-def _distances(blocked, cost, ga, gb, nb):
+def _distances(blocked, ga, gb, nb):
     """Dijkstra distances (in cells) from cell (ga, gb) over the free cells of ``blocked``."""
     s = blocked.shape[0]
     dist = np.full((s, s), np.inf)
@@ -53,14 +49,14 @@ def _distances(blocked, cost, ga, gb, nb):
         for k in range(nb.shape[0]):
             x, y = a + nb[k, 0], b + nb[k, 1]
             if 0 <= x < s and 0 <= y < s and not blocked[x, y]:
-                c = best + (1.4142135623730951 if k >= 4 else 1.0) * cost[x, y]
+                c = best + (1.4142135623730951 if k >= 4 else 1.0)
                 if c < dist[x, y]:
                     dist[x, y] = c
     return dist
 
 
 @njit(cache=True)
-def _plan(obstacles, explored, d, th, cell, lookahead, unseen_cost, wall_cost, nb):
+def _plan(obstacles, d, th, cell, lookahead, nb):
     """(rho, theta) of the sub-goal for one ego map (see the module docstring)."""
     s = obstacles.shape[0]
     if d <= lookahead:
@@ -74,17 +70,7 @@ def _plan(obstacles, explored, d, th, cell, lookahead, unseen_cost, wall_cost, n
     gb = min(max(int(s / 2 - left / cell), 0), s - 1)
     blocked = obstacles > 0.5
     blocked[ga, gb] = False
-    cost = np.ones((s, s))
-    for i in range(s):
-        for j in range(s):
-            if explored[i, j] <= 0.0:  # channel 1: the explored free space of the cell
-                cost[i, j] = unseen_cost
-            for k in range(nb.shape[0]):  # beside an observed obstacle
-                x, y = i + nb[k, 0], j + nb[k, 1]
-                if 0 <= x < s and 0 <= y < s and blocked[x, y]:
-                    cost[i, j] += wall_cost
-                    break
-    dist = _distances(blocked, cost, ga, gb, nb)
+    dist = _distances(blocked, ga, gb, nb)
     a, b = s // 2, s // 2
     if not np.isfinite(dist[a, b]):
         # the agent's own cell may be marked (an obstacle within its 0.5 m): step off it
@@ -119,10 +105,8 @@ class MapPlanner:
     name = "map"
     ground_truth = False
 
-    def __init__(self, cell: float = 0.5, lookahead: float = 2.0, stop_distance: float = 0.19,
-                 unseen_cost: float = 2.0, wall_cost: float = 2.0):
+    def __init__(self, cell: float = 0.5, lookahead: float = 2.0, stop_distance: float = 0.19):
         self.cell, self.lookahead, self.stop_distance = float(cell), float(lookahead), float(stop_distance)
-        self.unseen_cost, self.wall_cost = float(unseen_cost), float(wall_cost)
 
     def decide(self, obs: dict) -> tuple[np.ndarray, np.ndarray]:
         """(stop (k,) int64, subgoal (k, 2) float32)."""
@@ -131,6 +115,5 @@ class MapPlanner:
         stop = (goal[:, 0] < self.stop_distance).astype(np.int64)
         sub = np.zeros((len(goal), 2), np.float32)
         for k in range(len(goal)):
-            sub[k] = _plan(ego[k, 0], ego[k, 1], goal[k, 0], goal[k, 1], self.cell, self.lookahead, self.unseen_cost,
-                           self.wall_cost, _NEIGHBOURS)
+            sub[k] = _plan(ego[k, 0], goal[k, 0], goal[k, 1], self.cell, self.lookahead, _NEIGHBOURS)
         return stop, sub
