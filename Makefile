@@ -16,9 +16,9 @@ $(VENV)/.installed: pyproject.toml
 
 setup: $(VENV)/.installed
 
-# The main job: PLEX-GRU with the cpu preset on the default procedural scenes, through the
-# preset's curriculum phases (450k steps) and 10k steps of PPO after them, then a greedy
-# evaluation on 100 fixed validation episodes.
+# The main job: PLEX-GRU with the cpu preset on the default procedural scenes, through its
+# warm-up and teacher phases (300k steps) and 160k steps of the planner's imitation, then a
+# greedy evaluation on 100 fixed validation episodes.
 TRAIN_STEPS ?= 460000
 RUN_DIR ?= runs/quickstart
 train: $(VENV)/.installed

@@ -72,6 +72,8 @@ import time
 
 import numpy as np
 
+from plex_ma.config import DEVICE_HELP
+
 
 def machine() -> dict:
     import numba
@@ -473,7 +475,7 @@ def main(argv: list[str] | None = None) -> None:
     pt.add_argument("--seed", type=int, default=0)
     pt.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a TrainConfig field, e.g. --set num_minibatches=4 (repeatable)")
-    pt.add_argument("--device", default="auto", help="where the networks run: auto (CUDA when present), cpu, cuda, cuda:N")
+    pt.add_argument("--device", default="auto", help=DEVICE_HELP)
     pt.add_argument("--json", action="store_true", help="print one JSON object")
     a = p.parse_args(argv)
     if a.what == "train":

@@ -12,6 +12,8 @@ from typing import Literal
 
 Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt"]
 Preset = Literal["smoke", "cpu", "paper"]
+# --device of the CLIs that load networks (evaluate, record, bench train; train has the field below)
+DEVICE_HELP = "where the networks run: auto (CUDA when present), cpu, cuda, cuda:N"
 
 
 @dataclass

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from plex_ma.config import TrainConfig
+from plex_ma.config import DEVICE_HELP, TrainConfig
 from plex_ma.envs.rules import CLOSE_FAR_SPLIT, PLANNER
 from plex_ma.envs.sim import generate_episodes, load_episodes
 from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
@@ -192,7 +192,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--record", default=None, help="also record the episodes to this .rrd file (rerun)")
     p.add_argument("--torch-threads", type=int, default=1,
                    help="torch threads (1: small batches run fastest on a small, shared machine)")
-    p.add_argument("--device", default="auto", help="where the networks run: auto (CUDA when present), cpu, cuda, cuda:N")
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
     a = p.parse_args(argv)
     if a.torch_threads > 0:
         torch.set_num_threads(a.torch_threads)

@@ -21,6 +21,8 @@ import argparse
 import json
 import sys
 
+from plex_ma.config import DEVICE_HELP
+
 
 def main(argv: list[str] | None = None) -> list[dict]:
     p = argparse.ArgumentParser(prog="python -m plex_ma.record", description=__doc__,
@@ -43,7 +45,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--no-images", action="store_true", help="leave out the RGB, depth and ego map images")
     p.add_argument("--spawn", action="store_true", help="also stream live to a Rerun viewer (needs a display)")
     p.add_argument("--topdown-png", default=None, help="also write the top-down picture of the last episode here")
-    p.add_argument("--device", default="auto", help="where the networks run: auto (CUDA when present), cpu, cuda, cuda:N")
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
     a = p.parse_args(argv)
     from plex_ma.trainers.device import DeviceError, resolve_device
 

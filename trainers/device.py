@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import torch
 
-DEVICES = ("auto", "cpu", "cuda")
-
 
 class DeviceError(ValueError):
     """A device that this machine does not have."""
