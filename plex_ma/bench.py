@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m plex_ma.bench {sim,env,gymvec,geodesic,train,record} [options] [--json]``.
+"""Benchmarks: ``python -m plex_ma.bench {sim,env,gymvec,geodesic,train,record,adam} [options] [--json]``.
 
 ``train`` times a short training (``--preset``, ``--method``, ``--steps``) end to end and
 reports steps/s, the shares of wall time in simulation, inference and the update, the
@@ -417,6 +417,36 @@ def bench_record(preset: str = "cpu", updates: int = 20, record_interval: int = 
             "machine": machine()}
 
 
+def bench_adam(preset: str = "cpu", steps: int = 20, rounds: int = 5, threads: int = 1) -> dict:
+    """Milliseconds per Adam step over each PLEX network's parameters, for torch's three
+    implementations (per-tensor loop, foreach, fused), timed in alternating rounds."""
+    import torch
+
+    from plex_ma.config import preset_defaults
+    from plex_ma.trainers.plex import build_policies
+
+    torch.set_num_threads(threads)
+    out = {"preset": preset, "threads": threads}
+    for name, net in build_policies(preset_defaults(preset)).items():
+        for q in net.parameters():
+            q.grad = torch.randn_like(q)
+        opts = {impl: torch.optim.Adam(net.parameters(), lr=1e-6, eps=1e-5, **kw)
+                for impl, kw in (("loop", {"foreach": False}), ("foreach", {"foreach": True}), ("fused", {"fused": True}))}
+        times = {impl: [] for impl in opts}
+        for o in opts.values():
+            o.step()  # state allocated before timing
+        for _ in range(rounds):
+            for impl, o in opts.items():
+                t = time.perf_counter()
+                for _ in range(steps):
+                    o.step()
+                times[impl].append((time.perf_counter() - t) / steps * 1e3)
+        out[f"{name}_params"] = sum(q.numel() for q in net.parameters())
+        for impl, ts in times.items():
+            out[f"{name}_{impl}_ms"] = float(np.median(ts))
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m plex_ma.bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -477,8 +507,17 @@ def main(argv: list[str] | None = None) -> None:
                     help="override a TrainConfig field, e.g. --set num_minibatches=4 (repeatable)")
     pt.add_argument("--device", default="auto", help=DEVICE_HELP)
     pt.add_argument("--json", action="store_true", help="print one JSON object")
+    pa = sub.add_parser("adam", help="ms per Adam step over the PLEX networks: per-tensor loop, foreach, fused")
+    pa.add_argument("--preset", default="cpu", help="training preset (the networks' sizes)")
+    pa.add_argument("--steps", type=int, default=20, help="steps per timed round")
+    pa.add_argument("--rounds", type=int, default=5, help="alternate the three implementations this many times")
+    pa.add_argument("--threads", type=int, default=1, help="torch threads")
+    pa.add_argument("--json", action="store_true", help="print one JSON object")
     a = p.parse_args(argv)
-    if a.what == "train":
+    if a.what == "adam":
+        out = bench_adam(a.preset, a.steps, a.rounds, a.threads)
+        out["machine"] = machine()
+    elif a.what == "train":
         from plex_ma.bench_flops import bench_train
 
         overrides = {}

@@ -106,6 +106,8 @@ class TrainConfig:
     """PLEX only: the executor's STOP earns its +1 within this distance (m) of the sub-goal (the env's subgoal_radius)"""
     executor_stop_penalty: float = 0.0
     """PLEX only: added to the executor's reward when it chooses STOP farther than subgoal_radius from its sub-goal (the env's executor_stop_penalty)"""
+    planner_target_kl: float | None = None
+    """PLEX only: stop the epochs of a planner update early once its approx_kl exceeds this (CleanRL's target_kl; None: all epochs)"""
     planner_minibatches: int = 2
     """PLEX only: minibatches per epoch of the planner's PPO update"""
     executor_goal_skip: bool = True
@@ -199,6 +201,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(not (cfg.planner != "learn" and cfg.executor == "oracle"), "executor",
          "with --executor oracle the planner must learn (nothing would be trained)")
     need(cfg.planner_minibatches >= 1, "planner_minibatches", "must be >= 1")
+    need(cfg.planner_target_kl is None or cfg.planner_target_kl > 0, "planner_target_kl", "must be positive")
     need(cfg.executor_stop_penalty <= 0, "executor_stop_penalty", "must be <= 0")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")

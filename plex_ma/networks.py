@@ -52,6 +52,9 @@ def encode_polar(vec: torch.Tensor) -> torch.Tensor:
 GOAL_FEATURES = 5
 
 
+STOP_PRIOR_DISTANCE = 0.17  # m: an untrained planner's p(stop) is 0.5 at this goal distance
+
+
 def planner_goal_features(goal: torch.Tensor) -> torch.Tensor:
     """(B, 2) goal (distance m, direction rad) -> (B, 5): distance / 10, cos, sin, and
     exp(-distance / 0.5) and min(distance, 2) for a fine reading near the goal (where
@@ -92,7 +95,9 @@ class Planner(nn.Module):
       executor can reach in N_EX = 10 actions) away at most, and directions wrap round the
       goal's direction rather than round +-pi;
     - stop logits = the head's output + a linear skip from the goal features, started so that
-      p(stop) is ~0.5 at 0.1 m, ~0.12 at 0.2 m and below 2% beyond 0.3 m.
+      p(stop) is 0.94 at 0.1 m, 0.5 at ``STOP_PRIOR_DISTANCE`` = 0.17 m (inside the 0.2 m of a
+      success), 0.23 at 0.2 m and below 1% beyond 0.3 m: a greedy planner stops where a stop
+      succeeds.
 
     Sub-goal action: the policy samples an *unbounded* raw (rho, theta) from two Gaussians
     with state-dependent means and state-independent learnable log-stds (started at std
@@ -126,9 +131,9 @@ class Planner(nn.Module):
         with torch.no_grad():
             self.stop_skip.weight.zero_()
             self.stop_skip.bias.zero_()
-            # stop logit - continue logit ~ 2 - 20 * min(goal distance, 2) (goal feature 4)
-            self.stop_skip.weight[1, 4] = -20.0
-            self.stop_skip.bias[1] = 2.0
+            # stop logit - continue logit ~ 40 * (0.17 - min(goal distance, 2)) (goal feature 4)
+            self.stop_skip.weight[1, 4] = -40.0
+            self.stop_skip.bias[1] = 40.0 * STOP_PRIOR_DISTANCE
         self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
 
     def features(self, obs: dict) -> torch.Tensor:

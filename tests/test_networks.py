@@ -210,6 +210,11 @@ def test_planner_heads_start_goal_relative():
     p_stop = stop_d.probs[:, 1]
     d = obs["goal"][:, 0]
     assert (p_stop[d < 0.1] > 0.4).all() and (p_stop[d > 0.3] < 0.02).all()
+    # greedy, it stops where a stop succeeds (success: within 0.2 m) and nowhere farther out
+    near = pl.example_obs(4)
+    near["goal"] = torch.tensor([[0.05, 0.0], [0.15, 1.0], [0.21, -2.0], [0.3, 3.0]])
+    greedy = pl.act(near, deterministic=True)["stop"]
+    assert greedy.tolist() == [1, 1, 0, 0]
     # the map and the ELI move the heads' output away from the goal-directed start only by learning
     obs["ego_map"] = torch.rand_like(obs["ego_map"])
     torch.testing.assert_close(pl(obs)[1].mean[:, 1], obs["goal"][:, 1], atol=0.05, rtol=0)

@@ -109,6 +109,31 @@ def test_ppo_update_reduces_loss_planner():
     assert _loss(pl, buf, cfg) < before - 0.05
 
 
+def test_target_kl_stops_the_epochs_early():
+    """With a target KL the update stops after the first epoch whose approx_kl exceeds it
+    (the planner's --planner-target-kl); without one it runs every epoch."""
+    torch.manual_seed(0)
+    steps = {}
+    for target in (None, 1e-9):
+        pl = Planner(channels=(8, 8), hidden=64)
+        torch.manual_seed(1)
+        buf = RolloutBuffer(8, 4)
+        g = torch.Generator().manual_seed(0)
+        for t in range(8):
+            obs = pl.example_obs(4, g)
+            out = pl.act(obs)
+            buf.add(t, obs=obs, actions={"stop": out["stop"], "subgoal": out["subgoal"]}, log_probs=out["log_prob"],
+                    values=out["value"], rewards=torch.randn(4, generator=g), dones=torch.zeros(4))
+        buf.compute_returns(0.95, 0.95, last_values=torch.zeros(4))
+        opt = torch.optim.Adam(pl.parameters(), lr=1e-3)
+        calls = []
+        opt.register_step_post_hook(lambda *_: calls.append(1))
+        ppo_update(pl, buf, opt, PPOConfig(update_epochs=4, num_minibatches=2, target_kl=target),
+                   generator=torch.Generator().manual_seed(1))
+        steps[target] = len(calls)
+    assert steps == {None: 8, 1e-9: 2}
+
+
 def test_ppo_update_reduces_loss_recurrent():
     torch.manual_seed(0)
     ex = Executor("gru", 64, gru_hidden=32)
@@ -129,3 +154,27 @@ def test_ppo_update_reduces_loss_recurrent():
     stats = ppo_update(ex, buf, torch.optim.Adam(ex.parameters(), lr=1e-3), cfg)
     assert stats["approx_kl"] > 0 and -1 <= stats["clip_fraction"] <= 1
     assert _loss(ex, buf, cfg) < before - 0.05
+
+
+def test_bench_adam_times_each_implementation(capsys):
+    """``python -m plex_ma.bench adam`` times the loop, foreach and fused Adam steps over
+    both PLEX networks, and the trainer uses the fused one."""
+    import json
+
+    from plex_ma.bench import main as bench_main
+    from plex_ma.config import preset_defaults
+    from plex_ma.trainers.plex import PlexTrainer
+
+    bench_main(["adam", "--preset", "smoke", "--steps", "2", "--rounds", "1", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    for net in ("planner", "executor"):
+        assert out[f"{net}_params"] > 0
+        assert all(out[f"{net}_{impl}_ms"] > 0 for impl in ("loop", "foreach", "fused"))
+    import dataclasses
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        cfg = dataclasses.replace(preset_defaults("smoke"), run_dir=d, progress=False, record_interval=0)
+        tr = PlexTrainer(cfg, log=False)
+        assert all(o.defaults["fused"] for o in tr.opts.values())
+        tr.env.close()

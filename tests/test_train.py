@@ -163,6 +163,9 @@ def test_cli_help_and_bad_config(capsys):
     with pytest.raises(SystemExit) as e:  # the CLI: exit status 2 and one line naming the flag
         train_main(["--preset", "smoke", "--planner-entropy-coef", "-1"])
     assert e.value.code == 2 and "--planner-entropy-coef" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="--planner-target-kl"):
+        parse(["--preset", "smoke", "--planner-target-kl", "0"])
+    assert parse(["--preset", "smoke", "--planner-target-kl", "0.03"]).planner_target_kl == 0.03
 
 
 def test_evaluate_cli_writes_json(tmp_path):

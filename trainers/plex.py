@@ -153,7 +153,10 @@ class Trainer:
             self.device = torch.device("cuda", self.dist.local_rank)
         self.nets = {k: m.to(self.device) for k, m in build_policies(cfg).items()}
         lrs = {"planner": cfg.planner_lr or cfg.lr}
-        self.opts = {k: torch.optim.Adam(m.parameters(), lr=lrs.get(k, cfg.lr), eps=1e-5) for k, m in self.nets.items()}
+        # fused Adam: one kernel over all parameters, about 3x faster than the per-tensor loop
+        # on the planner's 6M parameters (`python -m plex_ma.bench adam`)
+        self.opts = {k: torch.optim.Adam(m.parameters(), lr=lrs.get(k, cfg.lr), eps=1e-5, fused=True)
+                     for k, m in self.nets.items()}
         self.ppo = PPOConfig(clip_coef=cfg.clip, vf_coef=cfg.value_coef, ent_coef=cfg.entropy_coef,
                              max_grad_norm=cfg.max_grad_norm, update_epochs=cfg.ppo_epochs,
                              num_minibatches=cfg.num_minibatches)
@@ -456,7 +459,8 @@ class PlexTrainer(Trainer):
                 dones=torch.zeros(m, dtype=torch.bool))
         buf.data["advantages"] = torch.as_tensor(adv, device=self.device)[None]
         buf.data["returns"] = torch.as_tensor(adv + value, device=self.device)[None]
-        ppo = dataclasses.replace(self.ppo, num_minibatches=self.cfg.planner_minibatches)
+        ppo = dataclasses.replace(self.ppo, num_minibatches=self.cfg.planner_minibatches,
+                                  target_kl=self.cfg.planner_target_kl)
         if self.cfg.planner_entropy_coef is not None:
             ppo = dataclasses.replace(ppo, ent_coef=self.cfg.planner_entropy_coef)
         stats = ppo_update(self.planner, buf, self.opts["planner"], ppo, self.gen)
