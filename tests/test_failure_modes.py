@@ -1,0 +1,20 @@
+"""``scripts/failure_modes.py``: the failure report of a planner over the oracle executor."""
+
+import runpy
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "failure_modes.py"
+
+
+def test_failure_report_counts_the_failures(monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", [str(SCRIPT), "--planner", "map", "--split", "val", "--episodes", "24",
+                                      "--num-envs", "8"])
+    runpy.run_path(str(SCRIPT), run_name="__main__")
+    out = capsys.readouterr().out.splitlines()
+    n_fail = int(out[0].split()[0])
+    assert out[0].endswith("(map planner over the oracle executor, ground truth)")
+    assert 0 <= n_fail < 24  # the map planner over the oracle executor succeeds in most episodes
+    rows = out[2:2 + n_fail]
+    assert all(int(r.split()[1]) == 500 or float(r.split()[3]) >= 0.2 for r in rows)  # a time-out or a failed stop
+    assert out[-1].startswith("standing in place over the last 100 actions:")
