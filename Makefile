@@ -17,9 +17,9 @@ $(VENV)/.installed: pyproject.toml
 setup: $(VENV)/.installed
 
 # The main job: PLEX-GRU with the cpu preset on the default procedural scenes, through its
-# warm-up and teacher phases (300k steps) and 100k steps of the planner's imitation, then a
+# warm-up and teacher phases (300k steps) and 140k steps of the planner's imitation, then a
 # greedy evaluation on 100 fixed validation episodes.
-TRAIN_STEPS ?= 400000
+TRAIN_STEPS ?= 440000
 RUN_DIR ?= runs/quickstart
 train: $(VENV)/.installed
 	$(PY) -m plex_ma.train --preset cpu --method plex-gru --total-steps $(TRAIN_STEPS) --run-dir $(RUN_DIR)
