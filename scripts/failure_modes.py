@@ -4,10 +4,10 @@
     python scripts/failure_modes.py --checkpoint runs/x/latest.pt --split val --episodes 200
 
 Runs the planner (greedy; the map planner, or a checkpoint's learned planner) over the
-oracle executor on the split's fixed episodes and prints, for every failed episode: the
+oracle executor on the split's fixed episodes through ``plex_ma.evaluate.run_episodes`` and prints, for every failed episode: the
 actions it took, its collisions, the agent's largest distance from its mean position over
 the episode's last 100 actions ("spread": 0 m means it stood in place), and at the
-planner's last decision the sub-goal's straight-line distance against its distance along
+planner's last decision the (snapped) sub-goal's straight-line distance against its distance along
 the true shortest path (a sub-goal behind a wall has the second much larger) and its
 direction from the agent's heading (the executor turns 10 degrees an action, so it cannot
 face a sub-goal more than 100 degrees away within N_EX = 10 actions). Ends with
@@ -22,12 +22,44 @@ import numpy as np
 import torch
 
 from plex_ma.config import TrainConfig
-from plex_ma.evaluate import load_policies
-from plex_ma.trainers.driver import PlexDriver, make_executor, make_planner
-from plex_ma.trainers.plex import env_kwargs
-from plex_ma.envs.vector import PlexVectorEnv
+from plex_ma.evaluate import load_policies, run_episodes
 
 TAIL = 100  # actions at the end of an episode over which the spread is measured
+
+
+class Observer:
+    """Plugs into ``run_episodes`` where a recorder would: keeps each world's positions and
+    its latest sub-goal, and the failed episodes' figures when they end."""
+
+    def begin(self, env) -> None:
+        self.worlds, self.sim = env.worlds, env.worlds.sim
+        self.paths: list[list] = [[] for _ in range(env.num_envs)]
+        self.last: list = [None] * env.num_envs  # (straight m, along the path m, direction deg)
+        self.fails: dict[int, dict] = {}
+
+    def step(self, env, res, rows=None, eli=None) -> None:
+        w, sim = self.worlds, self.sim
+        ended = np.flatnonzero(res.terminated | res.truncated)
+        for j, info in zip(ended, res.episode_infos):
+            if not info["success"] and info["episode_id"] not in self.fails:
+                tail = np.array(self.paths[j][-TAIL:]) if self.paths[j] else np.zeros((1, 2))
+                self.fails[info["episode_id"]] = {
+                    "episode": info["episode_id"], "steps": int(info["steps"]), "collisions": int(info["collisions"]),
+                    "distance_to_goal": float(info["distance_to_goal"]),
+                    "spread": float(np.linalg.norm(tail - tail.mean(0), axis=1).max()),
+                    **dict(zip(("subgoal_straight", "subgoal_path", "subgoal_deg"), self.last[j]))}
+            self.paths[j] = []
+        if rows is not None:  # planner decisions: the sub-goals just set (snapped, fixed in the world)
+            for r in rows:
+                dx, dy = w.subgoal[r] - sim.pos[r]
+                ang = (np.arctan2(dy, dx) - sim.heading[r] + np.pi) % (2 * np.pi) - np.pi
+                self.last[r] = (float(np.hypot(dx, dy)), float(w.subgoal_dist[r]), float(np.degrees(ang)))
+        else:  # an executor action in every world
+            for j in np.setdiff1d(np.arange(len(self.paths)), ended):
+                self.paths[j].append(sim.pos[j].copy())
+
+    def end(self) -> None:
+        pass
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -42,47 +74,13 @@ def main(argv: list[str] | None = None) -> None:
         p.error("--planner learned needs --checkpoint")
     torch.set_num_threads(1)
     cfg, nets = load_policies(a.checkpoint) if a.checkpoint else (TrainConfig(), {})
-    env = PlexVectorEnv(a.num_envs, seed=0, **env_kwargs(cfg, a.split))
-    eps = list(env.worlds.fixed_episodes[:a.episodes])
-    env.worlds.fixed_episodes = eps
-    wanted = {e.episode_id for e in eps}
-    worlds, sim = env.worlds, env.worlds.sim
-    drv = PlexDriver(env, make_planner(a.planner, env, nets.get("planner"), deterministic=True),
-                     make_executor("oracle", env))
-    drv.reset()
-    paths: list[list] = [[] for _ in range(a.num_envs)]
-    last: list = [None] * a.num_envs  # (straight, along the path, direction) of each world's latest sub-goal
-    done: dict[int, dict | None] = {}
-
-    def finish(res) -> None:
-        ended = np.flatnonzero(res.terminated | res.truncated)
-        for j, info in zip(ended, res.episode_infos):
-            eid = info["episode_id"]
-            if eid in wanted and eid not in done:
-                tail = np.array(paths[j][-TAIL:]) if paths[j] else np.zeros((1, 2))
-                spread = float(np.linalg.norm(tail - tail.mean(0), axis=1).max())
-                done[eid] = None if info["success"] else {
-                    "episode": eid, "steps": int(info["steps"]), "collisions": int(info["collisions"]),
-                    "distance_to_goal": float(info["distance_to_goal"]), "spread": spread,
-                    "subgoal_straight": last[j][0], "subgoal_path": last[j][1], "subgoal_deg": last[j][2]}
-            paths[j] = []
-
-    def on_decision(d) -> None:
-        for k, r in enumerate(d.rows):
-            last[r] = (float(np.hypot(*(worlds.subgoal[r] - sim.pos[r]))), float(worlds.subgoal_dist[r]),
-                       float(np.degrees(d.out["subgoal"][k][1])))
-        finish(d.result)
-
-    with torch.no_grad():
-        while len(done) < len(eps):
-            drv.decide(on_decision, until=lambda: len(done) == len(eps))
-            if len(done) == len(eps):
-                break
-            for j in range(a.num_envs):
-                paths[j].append(sim.pos[j].copy())
-            finish(drv.step().result)
-    fails = sorted((f for f in done.values() if f is not None), key=lambda f: f["spread"])
-    print(f"{len(fails)} failures in {len(eps)} episodes ({a.planner} planner over the oracle executor, ground truth)")
+    obs = Observer()
+    results = run_episodes(cfg, nets, a.split, a.episodes, num_envs=a.num_envs, recorder=obs, planner=a.planner,
+                           executor="oracle")
+    failed = {r["episode_id"] for r in results if not r["success"]}
+    fails = sorted((f for k, f in obs.fails.items() if k in failed), key=lambda f: f["spread"])
+    print(f"{len(fails)} failures in {len(results)} episodes ({a.planner} planner over the oracle executor, "
+          f"ground truth)")
     print(f"{'episode':>8} {'steps':>5} {'collisions':>10} {'to goal m':>9} {'spread m':>8} "
           f"{'sub-goal m':>10} {'along path m':>12} {'direction deg':>13}")
     for f in fails:

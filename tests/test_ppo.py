@@ -1,9 +1,15 @@
 """Generic PPO machinery: GAE conventions, the rollout buffer's minibatches, ppo_update."""
 
+import dataclasses
+import json
+
 import pytest
 import torch
 
+from plex_ma.bench import main as bench_main
+from plex_ma.config import preset_defaults
 from plex_ma.networks import Executor, Planner
+from plex_ma.trainers.plex import PlexTrainer
 from plex_ma.trainers.ppo import PPOConfig, RolloutBuffer, compute_gae, ppo_loss, ppo_update
 
 
@@ -112,11 +118,10 @@ def test_ppo_update_reduces_loss_planner():
 def test_target_kl_stops_the_epochs_early():
     """With a target KL the update stops after the first epoch whose approx_kl exceeds it
     (the planner's --planner-target-kl); without one it runs every epoch."""
-    torch.manual_seed(0)
     steps = {}
     for target in (None, 1e-9):
+        torch.manual_seed(0)  # the same planner and rollout in both arms
         pl = Planner(channels=(8, 8), hidden=64)
-        torch.manual_seed(1)
         buf = RolloutBuffer(8, 4)
         g = torch.Generator().manual_seed(0)
         for t in range(8):
@@ -158,23 +163,16 @@ def test_ppo_update_reduces_loss_recurrent():
 
 def test_bench_adam_times_each_implementation(capsys):
     """``python -m plex_ma.bench adam`` times the loop, foreach and fused Adam steps over
-    both PLEX networks, and the trainer uses the fused one."""
-    import json
-
-    from plex_ma.bench import main as bench_main
-    from plex_ma.config import preset_defaults
-    from plex_ma.trainers.plex import PlexTrainer
-
+    both PLEX networks."""
     bench_main(["adam", "--preset", "smoke", "--steps", "2", "--rounds", "1", "--json"])
     out = json.loads(capsys.readouterr().out)
     for net in ("planner", "executor"):
         assert out[f"{net}_params"] > 0
         assert all(out[f"{net}_{impl}_ms"] > 0 for impl in ("loop", "foreach", "fused"))
-    import dataclasses
-    import tempfile
 
-    with tempfile.TemporaryDirectory() as d:
-        cfg = dataclasses.replace(preset_defaults("smoke"), run_dir=d, progress=False, record_interval=0)
-        tr = PlexTrainer(cfg, log=False)
-        assert all(o.defaults["fused"] for o in tr.opts.values())
-        tr.env.close()
+
+def test_trainer_uses_fused_adam(tmp_path):
+    cfg = dataclasses.replace(preset_defaults("smoke"), run_dir=str(tmp_path), progress=False, record_interval=0)
+    tr = PlexTrainer(cfg, log=False)
+    assert all(o.defaults["fused"] for o in tr.opts.values())
+    tr.env.close()
