@@ -52,7 +52,9 @@ def encode_polar(vec: torch.Tensor) -> torch.Tensor:
 GOAL_FEATURES = 5
 
 
-STOP_PRIOR_DISTANCE = 0.17  # m: an untrained planner's p(stop) is 0.5 at this goal distance
+STOP_PRIOR_DISTANCE = 0.185  # m: an untrained planner's p(stop) is 0.5 at this goal distance
+STOP_PRIOR_SLOPE = 200.0  # stop logit - continue logit per metre nearer the goal than that
+OFFSET_FULL_DISTANCE = 1.0  # m: nearer the goal than this, the sub-goal heads' offsets shrink in proportion
 
 
 def planner_goal_features(goal: torch.Tensor) -> torch.Tensor:
@@ -91,13 +93,17 @@ class Planner(nn.Module):
 
     The heads answer relative to the goal and start goal-directed:
     - sub-goal mean = (min(goal distance, ``prior_distance``), goal direction) + the head's
-      output, so an untrained planner points at the goal, ``prior_distance`` (1.5 m: what the
-      executor can reach in N_EX = 10 actions) away at most, and directions wrap round the
-      goal's direction rather than round +-pi;
-    - stop logits = the head's output + a linear skip from the goal features, started so that
-      p(stop) is 0.94 at 0.1 m, 0.5 at ``STOP_PRIOR_DISTANCE`` = 0.17 m (inside the 0.2 m of a
-      success), 0.23 at 0.2 m and below 1% beyond 0.3 m: a greedy planner stops where a stop
-      succeeds.
+      output x min(1, goal distance / ``OFFSET_FULL_DISTANCE``), so an untrained planner
+      points at the goal, ``prior_distance`` (1.5 m) away at most, directions wrap round the
+      goal's direction rather than round +-pi, and near the goal the sub-goal is the goal
+      up to an offset that shrinks with the distance (with unscaled offsets, trained
+      planners set sub-goals 0.1-0.15 m away when the goal was 0.2-0.3 m away, which an
+      executor treats as reached, and timed out there: docs/results.md);
+    - stop logits = the head's output + a linear skip from the goal features, started at
+      ``STOP_PRIOR_SLOPE`` x (``STOP_PRIOR_DISTANCE`` - distance): p(stop) is 0.73 at 0.18 m,
+      0.27 at 0.19 m and below 2% beyond 0.205 m, so a greedy planner stops where a stop
+      succeeds (< 0.2 m); the head's learned output moves that threshold by only 5 mm per
+      unit of logit.
 
     Sub-goal action: the policy samples an *unbounded* raw (rho, theta) from two Gaussians
     with state-dependent means and state-independent learnable log-stds (started at std
@@ -131,9 +137,9 @@ class Planner(nn.Module):
         with torch.no_grad():
             self.stop_skip.weight.zero_()
             self.stop_skip.bias.zero_()
-            # stop logit - continue logit ~ 40 * (0.17 - min(goal distance, 2)) (goal feature 4)
-            self.stop_skip.weight[1, 4] = -40.0
-            self.stop_skip.bias[1] = 40.0 * STOP_PRIOR_DISTANCE
+            # stop logit - continue logit ~ slope * (prior distance - min(goal distance, 2)) (goal feature 4)
+            self.stop_skip.weight[1, 4] = -STOP_PRIOR_SLOPE
+            self.stop_skip.bias[1] = STOP_PRIOR_SLOPE * STOP_PRIOR_DISTANCE
         self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
 
     def features(self, obs: dict) -> torch.Tensor:
@@ -156,7 +162,8 @@ class Planner(nn.Module):
         goal = _as_tensor(obs["goal"], h.device, torch.float32)
         stop = Categorical(logits=self.stop_logits(h) + self.stop_skip(h[:, -GOAL_FEATURES:]))
         prior = torch.stack([goal[:, 0].clamp(max=self.prior_distance), goal[:, 1]], dim=1)
-        mean = self.subgoal_mean(h) + prior
+        scale = (goal[:, :1] / OFFSET_FULL_DISTANCE).clamp(max=1.0)
+        mean = self.subgoal_mean(h) * scale + prior
         subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
         return stop, subgoal, self.critic(h).squeeze(-1)
 

@@ -212,12 +212,28 @@ def test_planner_heads_start_goal_relative():
     assert (p_stop[d < 0.1] > 0.4).all() and (p_stop[d > 0.3] < 0.02).all()
     # greedy, it stops where a stop succeeds (success: within 0.2 m) and nowhere farther out
     near = pl.example_obs(4)
-    near["goal"] = torch.tensor([[0.05, 0.0], [0.15, 1.0], [0.21, -2.0], [0.3, 3.0]])
+    near["goal"] = torch.tensor([[0.05, 0.0], [0.18, 1.0], [0.19, 0.5], [0.2, -2.0], [0.3, 3.0]])
+    near["ego_map"], near["eli"] = near["ego_map"][[0, 1, 2, 3, 0]], near["eli"][[0, 1, 2, 3, 0]]
     greedy = pl.act(near, deterministic=True)["stop"]
-    assert greedy.tolist() == [1, 1, 0, 0]
+    assert greedy.tolist() == [1, 1, 0, 0, 0]
     # the map and the ELI move the heads' output away from the goal-directed start only by learning
     obs["ego_map"] = torch.rand_like(obs["ego_map"])
     torch.testing.assert_close(pl(obs)[1].mean[:, 1], obs["goal"][:, 1], atol=0.05, rtol=0)
+
+
+def test_planner_offsets_shrink_near_the_goal():
+    """The heads' offsets from the goal-directed prior count in full from 1 m out and in
+    proportion to the goal distance nearer in, so near the goal the sub-goal is the goal."""
+    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64)
+    with torch.no_grad():
+        pl.subgoal_mean[-1].weight.zero_()
+        pl.subgoal_mean[-1].bias.copy_(torch.tensor([-0.4, 0.6]))  # a learned offset: 0.4 m nearer, 0.6 rad left
+    obs = pl.example_obs(4)
+    obs["goal"] = torch.tensor([[3.0, 0.2], [1.0, -0.5], [0.5, 1.0], [0.25, 2.0]])
+    mean = pl(obs)[1].mean
+    scale = torch.tensor([1.0, 1.0, 0.5, 0.25])
+    expect = torch.stack([obs["goal"][:, 0].clamp(max=1.5) - 0.4 * scale, obs["goal"][:, 1] + 0.6 * scale], 1)
+    torch.testing.assert_close(mean, expect)
 
 
 
