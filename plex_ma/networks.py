@@ -54,7 +54,8 @@ GOAL_FEATURES = 5
 
 STOP_PRIOR_DISTANCE = 0.185  # m: an untrained planner's p(stop) is 0.5 at this goal distance
 STOP_PRIOR_SLOPE = 200.0  # stop logit - continue logit per metre nearer the goal than that
-OFFSET_FULL_DISTANCE = 1.0  # m: nearer the goal than this, the sub-goal heads' offsets shrink in proportion
+OFFSET_FULL_DISTANCE = 1.0  # m: from here out the sub-goal heads' offsets count in full ...
+OFFSET_ZERO_DISTANCE = 0.2  # m: ... and from here in not at all (the sub-goal is the goal), linear between
 
 
 def planner_goal_features(goal: torch.Tensor) -> torch.Tensor:
@@ -93,12 +94,13 @@ class Planner(nn.Module):
 
     The heads answer relative to the goal and start goal-directed:
     - sub-goal mean = (min(goal distance, ``prior_distance``), goal direction) + the head's
-      output x min(1, goal distance / ``OFFSET_FULL_DISTANCE``), so an untrained planner
-      points at the goal, ``prior_distance`` (1.5 m) away at most, directions wrap round the
-      goal's direction rather than round +-pi, and near the goal the sub-goal is the goal
-      up to an offset that shrinks with the distance (with unscaled offsets, trained
-      planners set sub-goals 0.1-0.15 m away when the goal was 0.2-0.3 m away, which an
-      executor treats as reached, and timed out there: docs/results.md);
+      output x a scale that rises linearly from 0 at ``OFFSET_ZERO_DISTANCE`` (0.2 m) to 1 at
+      ``OFFSET_FULL_DISTANCE`` (1 m) from the goal, so an untrained planner points at the
+      goal, ``prior_distance`` (1.5 m) away at most, directions wrap round the goal's
+      direction rather than round +-pi, and near the goal the sub-goal is the goal up to an
+      offset that shrinks to nothing (with unscaled offsets, trained planners set sub-goals
+      0.1-0.17 m away when the goal was 0.2-0.3 m away, which an executor treats as reached,
+      and timed out there: docs/results.md);
     - stop logits = the head's output + a linear skip from the goal features, started at
       ``STOP_PRIOR_SLOPE`` x (``STOP_PRIOR_DISTANCE`` - distance): p(stop) is 0.73 at 0.18 m,
       0.27 at 0.19 m and below 2% beyond 0.205 m, so a greedy planner stops where a stop
@@ -162,7 +164,7 @@ class Planner(nn.Module):
         goal = _as_tensor(obs["goal"], h.device, torch.float32)
         stop = Categorical(logits=self.stop_logits(h) + self.stop_skip(h[:, -GOAL_FEATURES:]))
         prior = torch.stack([goal[:, 0].clamp(max=self.prior_distance), goal[:, 1]], dim=1)
-        scale = (goal[:, :1] / OFFSET_FULL_DISTANCE).clamp(max=1.0)
+        scale = ((goal[:, :1] - OFFSET_ZERO_DISTANCE) / (OFFSET_FULL_DISTANCE - OFFSET_ZERO_DISTANCE)).clamp(0.0, 1.0)
         mean = self.subgoal_mean(h) * scale + prior
         subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
         return stop, subgoal, self.critic(h).squeeze(-1)

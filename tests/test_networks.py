@@ -222,16 +222,16 @@ def test_planner_heads_start_goal_relative():
 
 
 def test_planner_offsets_shrink_near_the_goal():
-    """The heads' offsets from the goal-directed prior count in full from 1 m out and in
-    proportion to the goal distance nearer in, so near the goal the sub-goal is the goal."""
+    """The heads' offsets from the goal-directed prior count in full from 1 m out, not at all
+    within 0.2 m, linearly between: near the goal the sub-goal is the goal."""
     pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64)
     with torch.no_grad():
         pl.subgoal_mean[-1].weight.zero_()
         pl.subgoal_mean[-1].bias.copy_(torch.tensor([-0.4, 0.6]))  # a learned offset: 0.4 m nearer, 0.6 rad left
     obs = pl.example_obs(4)
-    obs["goal"] = torch.tensor([[3.0, 0.2], [1.0, -0.5], [0.5, 1.0], [0.25, 2.0]])
+    obs["goal"] = torch.tensor([[3.0, 0.2], [1.0, -0.5], [0.6, 1.0], [0.15, 2.0]])
     mean = pl(obs)[1].mean
-    scale = torch.tensor([1.0, 1.0, 0.5, 0.25])
+    scale = torch.tensor([1.0, 1.0, 0.5, 0.0])
     expect = torch.stack([obs["goal"][:, 0].clamp(max=1.5) - 0.4 * scale, obs["goal"][:, 1] + 0.6 * scale], 1)
     torch.testing.assert_close(mean, expect)
 
