@@ -9,8 +9,9 @@ actions it took, its collisions, the agent's largest distance from its mean posi
 the episode's last 100 actions ("spread": 0 m means it stood in place), and at the
 planner's last decision the (snapped) sub-goal's straight-line distance against its distance along
 the true shortest path (a sub-goal behind a wall has the second much larger) and its
-direction from the agent's heading (the executor turns 10 degrees an action, so it cannot
-face a sub-goal more than 100 degrees away within N_EX = 10 actions). Ends with
+direction from the agent's heading (the executor turns 10 degrees an action, so at the
+paper's N_EX = 10 it cannot face a sub-goal more than 100 degrees away before control
+returns). Ends with
 a count of failures whose last 100 actions moved the agent less than 0.05 m.
 """
 

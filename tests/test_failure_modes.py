@@ -18,3 +18,16 @@ def test_failure_report_counts_the_failures(monkeypatch, capsys):
     rows = out[2:2 + n_fail]
     assert all(int(r.split()[1]) == 500 or float(r.split()[3]) >= 0.2 for r in rows)  # a time-out or a failed stop
     assert out[-1].startswith("standing in place over the last 100 actions:")
+
+
+def test_n_ex_sweep_runs_each_value(monkeypatch, capsys):
+    """``scripts/n_ex_sweep.py``: one row per N_EX on the same episodes; the map planner over
+    the oracle executor gains from an executor that can turn round before control returns."""
+    sweep = SCRIPT.parent / "n_ex_sweep.py"
+    monkeypatch.setattr(sys, "argv", [str(sweep), "--planner", "map", "--executor", "oracle", "--n-ex", "10", "18",
+                                      "--episodes", "64", "--num-envs", "8"])
+    runpy.run_path(str(sweep), run_name="__main__")
+    rows = [r.split() for r in capsys.readouterr().out.splitlines()[2:]]
+    assert [int(r[0]) for r in rows] == [10, 18]
+    s10, s18 = (float(r[1]) for r in rows)
+    assert s18 >= 0.9 and s18 > s10
