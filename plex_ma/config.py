@@ -112,6 +112,8 @@ class TrainConfig:
     """PLEX only: minibatches per epoch of the planner's PPO update"""
     executor_goal_skip: bool = True
     """the executor's (and flat policy's) heads also read the encoded goal vector beside the memory's output (--no-executor-goal-skip: heads on the 128-d output alone)"""
+    executor_stop_prior: float | None = None
+    """PLEX only: start the executor's STOP at p = 0.5 this many metres from its sub-goal, rising nearer and vanishing farther (a skip from the sub-goal distance; None: no skip)"""
     executor_hidden: int = 512
     """GRU hidden size of the executor and the flat GRU policy (512 in the paper)"""
     smt_memory: int = 128
@@ -158,7 +160,7 @@ PRESETS: dict[str, dict] = {
     "cpu": dict(total_steps=2_000_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=8, n_ex=18, torch_threads=1,
                 executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_warmup_steps=40_000,
                 warmup_scenes="open-room", random_subgoal_distance=1.5, random_subgoal_angle=3.14,
-                executor_stop_penalty=-0.5, teacher="map", teacher_subgoal_steps=260_000,
+                executor_stop_penalty=-0.5, executor_stop_prior=0.25, teacher="map", teacher_subgoal_steps=260_000,
                 planner_imitation_steps=1_700_000),
     # The paper's settings: 256 px images, N_PL = 128, 30M steps.
     "paper": dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128),
@@ -207,6 +209,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.planner_minibatches >= 1, "planner_minibatches", "must be >= 1")
     need(cfg.planner_target_kl is None or cfg.planner_target_kl > 0, "planner_target_kl", "must be positive")
     need(cfg.executor_stop_penalty <= 0, "executor_stop_penalty", "must be <= 0")
+    need(cfg.executor_stop_prior is None or 0 < cfg.executor_stop_prior <= 2, "executor_stop_prior",
+         "must be in (0, 2] metres")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
     need(cfg.teacher_subgoal_steps >= 0, "teacher_subgoal_steps", "must be >= 0")

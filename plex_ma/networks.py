@@ -32,6 +32,7 @@ from torch.distributions import Categorical, Normal
 
 ELI_DIM = 128
 NUM_ACTIONS = 4  # STOP, MOVE_FORWARD, TURN_LEFT, TURN_RIGHT
+STOP_ACTION = 0
 # float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
 # `|theta| <= pi` range check; clamp to the float32 just below pi instead.
 PI32 = float(np.nextafter(np.float32(np.pi), np.float32(0)))
@@ -55,6 +56,7 @@ GOAL_FEATURES = 5
 STOP_PRIOR_DISTANCE = 0.185  # m: an untrained planner's p(stop) is 0.5 at this goal distance
 STOP_PRIOR_SLOPE = 200.0  # stop logit - continue logit per metre nearer the goal than that
 OFFSET_FULL_DISTANCE = 1.0  # m: from here out the sub-goal heads' offsets count in full ...
+EXECUTOR_STOP_SLOPE = 20.0  # executor STOP logit per metre nearer the sub-goal than its stop prior
 OFFSET_ZERO_DISTANCE = 0.2  # m: ... and from here in not at all (the sub-goal is the goal), linear between
 
 
@@ -401,12 +403,20 @@ class Executor(nn.Module):
     ``memory="smt"``: FC 128, SMT with ``smt_heads`` heads over up to ``smt_memory``
     tokens, then a linear layer to the 128-d output. The output goes through tanh so the
     ELI sent to the planner stays in [-1, 1].
+
+    ``stop_prior`` (metres, or None): the STOP logit also gets a linear skip from
+    min(sub-goal distance, 2 m), started at ``EXECUTOR_STOP_SLOPE`` x (``stop_prior`` -
+    distance) + ln 3, so an untrained executor (three other logits near 0) has p(STOP) 0.5 at
+    ``stop_prior`` m from its sub-goal, 0.9 at 0.1 m nearer and below 2% from 0.25 m farther. Without it, the executor's STOP, penalised when short of the sub-goal, was
+    abandoned before it was ever tried near one: the executor then spent the rest of its
+    N_EX actions turning in place at the sub-goal (docs/results.md).
     """
 
     goal_key = "subgoal"
 
     def __init__(self, memory: str = "gru", resolution: int = 128, eli_dim: int = ELI_DIM,
-                 smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512, goal_skip: bool = True):
+                 smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512, goal_skip: bool = True,
+                 stop_prior: float | None = None):
         super().__init__()
         self.goal_skip = goal_skip
         if memory not in ("gru", "smt"):
@@ -426,6 +436,14 @@ class Executor(nn.Module):
         head_in = eli_dim + (3 if goal_skip else 0)
         self.actor = layer_init(nn.Linear(head_in, NUM_ACTIONS), std=0.01)
         self.critic = layer_init(nn.Linear(head_in, 1), std=1.0)
+        self.stop_skip = None
+        if stop_prior is not None:
+            self.stop_skip = nn.Linear(1, NUM_ACTIONS)
+            with torch.no_grad():
+                self.stop_skip.weight.zero_()
+                self.stop_skip.bias.zero_()
+                self.stop_skip.weight[STOP_ACTION, 0] = -EXECUTOR_STOP_SLOPE
+                self.stop_skip.bias[STOP_ACTION] = EXECUTOR_STOP_SLOPE * stop_prior + math.log(NUM_ACTIONS - 1)
 
     @property
     def device(self) -> torch.device:
@@ -447,7 +465,10 @@ class Executor(nn.Module):
     def _heads(self, out: torch.Tensor, goal: torch.Tensor):
         eli = torch.tanh(self.eli_head(out))
         h = torch.cat([eli, goal], dim=-1) if self.goal_skip else eli
-        return self.actor(h), self.critic(h).squeeze(-1), eli
+        logits = self.actor(h)
+        if self.stop_skip is not None:
+            logits = logits + self.stop_skip(goal[..., :1].clamp(max=2.0))
+        return logits, self.critic(h).squeeze(-1), eli
 
     def forward(self, obs: dict, state: torch.Tensor, starts):
         """One step for a batch: (logits (B, 4), value (B,), eli (B, 128), new state)."""

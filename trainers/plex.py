@@ -113,7 +113,8 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     if cfg.method.startswith("plex"):
         return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max),
                 "executor": Executor(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
-                                     gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip)}
+                                     gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip,
+                                     stop_prior=cfg.executor_stop_prior)}
     return {"policy": FlatPolicy(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
                                  gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip)}
 
