@@ -154,7 +154,7 @@ PRESETS: dict[str, dict] = {
     # stopped there again and again) and its STOP started likely within 0.15 m (without the
     # prior it never chose STOP and turned in place at its sub-goals; executor under the
     # oracle planner, seed 1, val 200 greedy: 0.920 at 205k steps with both, 0.750 at 256k with
-    # the prior alone, 0.550 at ~110k with a 0.25 m prior alone); planner updates every
+    # the prior alone, 0.550 at 102k with a 0.25 m prior alone); planner updates every
     # 8 decisions per world (N_PL = 8). Then a curriculum of phases: 40k steps of executor
     # warm-up in an open room under random sub-goals 1.5 m away in any direction (40-step
     # episodes; it teaches the executor to turn both ways), 260k steps of the executor under
