@@ -30,9 +30,10 @@ from torch import nn
 from torch.nn import functional as F
 from torch.distributions import Categorical, Normal
 
+from plex_ma.envs.sim.core import STOP
+
 ELI_DIM = 128
 NUM_ACTIONS = 4  # STOP, MOVE_FORWARD, TURN_LEFT, TURN_RIGHT
-STOP_ACTION = 0
 # float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
 # `|theta| <= pi` range check; clamp to the float32 just below pi instead.
 PI32 = float(np.nextafter(np.float32(np.pi), np.float32(0)))
@@ -56,8 +57,8 @@ GOAL_FEATURES = 5
 STOP_PRIOR_DISTANCE = 0.185  # m: an untrained planner's p(stop) is 0.5 at this goal distance
 STOP_PRIOR_SLOPE = 200.0  # stop logit - continue logit per metre nearer the goal than that
 OFFSET_FULL_DISTANCE = 1.0  # m: from here out the sub-goal heads' offsets count in full ...
-EXECUTOR_STOP_SLOPE = 20.0  # executor STOP logit per metre nearer the sub-goal than its stop prior
 OFFSET_ZERO_DISTANCE = 0.2  # m: ... and from here in not at all (the sub-goal is the goal), linear between
+EXECUTOR_STOP_SLOPE = 20.0  # executor STOP logit per metre nearer the sub-goal than its stop prior
 
 
 def planner_goal_features(goal: torch.Tensor) -> torch.Tensor:
@@ -407,9 +408,9 @@ class Executor(nn.Module):
     ``stop_prior`` (metres, or None): the STOP logit also gets a linear skip from
     min(sub-goal distance, 2 m), started at ``EXECUTOR_STOP_SLOPE`` x (``stop_prior`` -
     distance) + ln 3, so an untrained executor (three other logits near 0) has p(STOP) 0.5 at
-    ``stop_prior`` m from its sub-goal, 0.9 at 0.1 m nearer and below 2% from 0.25 m farther. Without it, the executor's STOP, penalised when short of the sub-goal, was
-    abandoned before it was ever tried near one: the executor then spent the rest of its
-    N_EX actions turning in place at the sub-goal (docs/results.md).
+    ``stop_prior`` m from its sub-goal, 0.9 at 0.1 m nearer and below 2% from 0.25 m
+    farther. (Trained without it under the cpu preset's STOP penalty, executors never chose
+    STOP and turned in place at their sub-goals: docs/results.md.)
     """
 
     goal_key = "subgoal"
@@ -442,8 +443,8 @@ class Executor(nn.Module):
             with torch.no_grad():
                 self.stop_skip.weight.zero_()
                 self.stop_skip.bias.zero_()
-                self.stop_skip.weight[STOP_ACTION, 0] = -EXECUTOR_STOP_SLOPE
-                self.stop_skip.bias[STOP_ACTION] = EXECUTOR_STOP_SLOPE * stop_prior + math.log(NUM_ACTIONS - 1)
+                self.stop_skip.weight[STOP, 0] = -EXECUTOR_STOP_SLOPE
+                self.stop_skip.bias[STOP] = EXECUTOR_STOP_SLOPE * stop_prior + math.log(NUM_ACTIONS - 1)
 
     @property
     def device(self) -> torch.device:
