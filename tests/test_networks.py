@@ -236,8 +236,6 @@ def test_planner_offsets_shrink_near_the_goal():
     torch.testing.assert_close(mean, expect)
 
 
-
-
 def test_planner_imitation_loss_matches_wrapped_angles_and_is_learnt():
     """The imitation NLL treats theta and theta + 2 pi alike, and minimising it moves the
     planner's greedy decision onto the teacher's."""
