@@ -97,9 +97,10 @@ from gymnasium import spaces
 from supersuit.utils.base_aec_wrapper import BaseWrapper
 
 from .rules import ELI_DIM, InvalidAction
+from .plex_nav import env as native_env
+from .sim.core import ACTION_NAMES
 from .spaces import MAX_GOAL_DISTANCE
 
-EXECUTOR_ACTIONS = ("STOP", "MOVE_FORWARD", "TURN_LEFT", "TURN_RIGHT")
 AGENT_IDS = {"planner": 0, "executor": 1}
 
 
@@ -114,8 +115,6 @@ def compat_env(image_size: int = 32, subgoal_distances=None, subgoal_directions:
         subgoal_directions: number of evenly spaced sub-goal directions (default 8).
         **config: arguments of ``plex_nav_v0.env`` (``eli`` must be left off or False).
     """
-    from .plex_nav_v0 import env as native_env
-
     build_args = dict(image_size=image_size, subgoal_distances=subgoal_distances,
                       subgoal_directions=subgoal_directions, **config)
     if config.get("eli", False):
@@ -198,7 +197,7 @@ def _native_action(action, act_space, agent, grid: np.ndarray):
 
 
 def _discrete_space(act_space, agent, k: int) -> spaces.Discrete:
-    return spaces.Discrete(k if agent == "planner" else len(EXECUTOR_ACTIONS))
+    return spaces.Discrete(k if agent == "planner" else len(ACTION_NAMES))
 
 
 class ActionMaskWrapper(BaseWrapper):
@@ -210,7 +209,7 @@ class ActionMaskWrapper(BaseWrapper):
         self._build_args = dict(build_args)
         agents = env.possible_agents
         self.num_actions = int(env.action_space(agents[0]).n)
-        own = {"planner": self.num_actions, "executor": len(EXECUTOR_ACTIONS)}
+        own = {"planner": self.num_actions, "executor": len(ACTION_NAMES)}
         self._masks = {}
         for a in agents:
             m = np.zeros(self.num_actions, np.int8)
@@ -268,6 +267,6 @@ class ActionMaskWrapper(BaseWrapper):
             raise InvalidAction(f"{agent}: action {a} is out of range; expected an integer in 0..{k - 1}")
         if not self._masks[agent][a]:
             raise InvalidAction(f"{agent}: action {a} is masked out; the {agent}'s actions are "
-                                f"0..{int(self._masks[agent].sum()) - 1} ({', '.join(EXECUTOR_ACTIONS)}); "
+                                f"0..{int(self._masks[agent].sum()) - 1} ({', '.join(ACTION_NAMES)}); "
                                 "see observation['action_mask']")
         return a

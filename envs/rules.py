@@ -32,11 +32,10 @@ import numpy as np
 
 from .sim import BatchedSim, Episode, Geodesics, scene_bank
 from .sim.core import MOVE_FORWARD, STOP
-from .sim.episodes import load_episodes, sample_episode
+from .sim.episodes import default_episode_file, load_episodes, sample_episode
 
 PLANNER, EXECUTOR = 0, 1
 ELI_DIM = 128
-CLOSE_FAR_SPLIT = 5.76  # metres (paper, Fig. 5b)
 # The keys of every info dict (:meth:`_Worlds.info`), in order.
 INFO_KEYS = ("scene_index", "episode_id", "geodesic_distance", "distance_to_goal", "collisions", "steps",
              "success", "spl")
@@ -536,12 +535,8 @@ def _float_array(x, who: str, key: str, shape) -> np.ndarray:
 
 
 def _default_episode_file(scenes: str, split: str):
+    """The shipped fixed episode file of a scene source's split, or None (episodes are then sampled)."""
     try:
-        from plex_ma.episodes import default_episode_file
-    except ImportError:
+        return default_episode_file(scenes, split)
+    except (ValueError, FileNotFoundError):
         return None
-    try:
-        p = default_episode_file(scenes, split)
-    except (KeyError, ValueError, FileNotFoundError):
-        return None
-    return p if p is not None and p.exists() else None

@@ -370,11 +370,9 @@ def bench_record(preset: str = "cpu", updates: int = 20, record_interval: int = 
     calls: list[float] = []
     calls_cpu: list[float] = []
     sizes: list[int] = []
-    original = vr.record_training_episode
-
     def timed(trainer, *args, **kwargs):
         t, c = time.perf_counter(), time.process_time()
-        out = original(trainer, *args, raise_errors=True, **kwargs)
+        out = vr.record_training_episode(trainer, *args, raise_errors=True, **kwargs)
         calls.append(time.perf_counter() - t)
         calls_cpu.append(time.process_time() - c)
         sizes.append(out.stat().st_size)
@@ -385,20 +383,16 @@ def bench_record(preset: str = "cpu", updates: int = 20, record_interval: int = 
             cfg = dataclasses.replace(base, total_steps=n_updates * base.num_envs * base.rollout_steps, run_dir=d,
                                       record_interval=interval, progress=False, seed=seed,
                                       checkpoint_interval=10**9)
-            trainer = make_trainer(cfg)
+            trainer = make_trainer(cfg, record=timed)
             t, c = time.perf_counter(), time.process_time()
             trainer.train()
             dt, dc = time.perf_counter() - t, time.process_time() - c
             trainer.close()
         return dt, dc
 
-    vr.record_training_episode = timed
-    try:
-        run(1, 0)  # warm-up: compiled kernels, torch
-        t_off, c_off = run(updates, 0)
-        t_on, c_on = run(updates, record_interval)
-    finally:
-        vr.record_training_episode = original
+    run(1, 0)  # warm-up: compiled kernels, torch
+    t_off, c_off = run(updates, 0)
+    t_on, c_on = run(updates, record_interval)
     per_update, per_update_cpu = t_off / updates, c_off / updates
 
     def steady(xs):  # the first recording also builds the val scenes once per run

@@ -7,61 +7,37 @@ gzipped JSON episode file. ``python -m plex_ma.episodes show PATH`` prints a sum
 episode count, scenes, quantiles of the geodesic distance, and the close/far split at
 5.76 m (the paper's Fig. 5b).
 
-The package ships the default files (``plex_ma/data/episodes/``), made by exactly these
-commands (:data:`DEFAULT_FILES` holds the counts and seeds)::
+The package ships the default files (``envs/sim/data/episodes/``), made by exactly these
+commands (:data:`~plex_ma.envs.sim.episodes.DEFAULT_FILES` holds the counts and seeds)::
 
     python -m plex_ma.episodes make --scenes procgen --split val --num-episodes 500 --seed 1 \\
-        --out plex_ma/data/episodes/procgen_val.json.gz
+        --out envs/sim/data/episodes/procgen_val.json.gz
     python -m plex_ma.episodes make --scenes procgen --split test --num-episodes 1000 --seed 2 \\
-        --out plex_ma/data/episodes/procgen_test.json.gz
+        --out envs/sim/data/episodes/procgen_test.json.gz
 
 They use the default scenes of each split (16 val and 16 test houses). Regenerating a
 file with the same command reproduces it byte for byte, as long as the scene source and
-the simulator's grid are unchanged. :func:`default_episode_file` returns their paths.
+the simulator's grid are unchanged. :func:`~plex_ma.envs.sim.episodes.default_episode_file` returns their paths.
 """
 
 from __future__ import annotations
+
+__all__ = ["CLOSE_FAR_SPLIT", "DEFAULT_FILES", "default_episode_file", "main", "make", "summary"]
 
 import argparse
 import sys
 from collections import Counter
 from pathlib import Path
 
-DATA_DIR = Path(__file__).resolve().parent / "data" / "episodes"
+import numpy as np
 
-#: Close/far threshold on the geodesic distance (m), paper Fig. 5b.
-CLOSE_FAR_THRESHOLD = 5.76
-
-#: (scenes, split) -> (number of episodes, seed) of the shipped default episode files.
-DEFAULT_FILES: dict[tuple[str, str], tuple[int, int]] = {
-    ("procgen", "val"): (500, 1),
-    ("procgen", "test"): (1000, 2),
-}
-
-
-def default_episode_file(scenes: str, split: str) -> Path:
-    """Path of the shipped fixed episode file of a scene source and split.
-
-    Raises ``ValueError`` for a split other than ``val``/``test`` (training samples
-    episodes on the fly) and ``FileNotFoundError`` when no file is shipped for the pair.
-    """
-    if split not in ("val", "test"):
-        raise ValueError(f"fixed episode files exist for the 'val' and 'test' splits, not {split!r} "
-                         "(training samples its episodes on the fly)")
-    path = DATA_DIR / f"{scenes}_{split}.json.gz"
-    if not path.is_file():
-        have = sorted(p.name for p in DATA_DIR.glob("*.json.gz")) if DATA_DIR.is_dir() else []
-        raise FileNotFoundError(
-            f"no fixed episode file for scenes={scenes!r} split={split!r} (expected {path}; shipped: {have}); "
-            f"make one with: python -m plex_ma.episodes make --scenes {scenes} --split {split} --out {path}")
-    return path
+from plex_ma.envs.sim import EpisodeFileError, SceneError, generate_episodes, load_episodes, save_episodes, scene_bank
+from plex_ma.envs.sim.episodes import CLOSE_FAR_SPLIT, DEFAULT_FILES, default_episode_file
 
 
 def make(scenes: str, split: str, num_episodes: int, seed: int, out: str | Path,
          num_scenes: int | None = None) -> list:
     """Sample ``num_episodes`` episodes over the scenes of ``split`` and write them to ``out``."""
-    from plex_ma.envs.sim import generate_episodes, save_episodes, scene_bank
-
     if num_episodes < 1:
         raise ValueError(f"--num-episodes must be >= 1, got {num_episodes}")
     if seed < 0:
@@ -74,12 +50,10 @@ def make(scenes: str, split: str, num_episodes: int, seed: int, out: str | Path,
 
 def summary(episodes: list) -> dict:
     """Count, scenes, geodesic distance quantiles and the close/far split of episodes."""
-    import numpy as np
-
     d = np.array([e.geodesic_distance for e in episodes], np.float64)
     per_scene = Counter(e.scene_id for e in episodes)
     q = [0, 10, 25, 50, 75, 90, 100]
-    close = int(np.sum(d < CLOSE_FAR_THRESHOLD))
+    close = int(np.sum(d < CLOSE_FAR_SPLIT))
     return {
         "episodes": len(episodes),
         "scenes": len(per_scene),
@@ -102,7 +76,7 @@ def _print_summary(path: str, s: dict, out=None) -> None:
     qs = "  ".join(f"{k}={v:.2f}" for k, v in s["geodesic_quantiles"].items())
     print(f"  geodesic distance (m): {qs}  mean={s['geodesic_mean']:.2f}", file=out)
     n = max(s["episodes"], 1)
-    print(f"  close (< {CLOSE_FAR_THRESHOLD} m): {s['close']} ({100 * s['close'] / n:.1f}%)  "
+    print(f"  close (< {CLOSE_FAR_SPLIT} m): {s['close']} ({100 * s['close'] / n:.1f}%)  "
           f"far: {s['far']} ({100 * s['far'] / n:.1f}%)", file=out)
 
 
@@ -121,8 +95,6 @@ def main(argv: list[str] | None = None) -> int:
     ps = sub.add_parser("show", help="summarise an episode file")
     ps.add_argument("path", help="episode file (.json.gz)")
     a = p.parse_args(argv)
-
-    from plex_ma.envs.sim import EpisodeFileError, SceneError, load_episodes
 
     try:
         if a.command == "make":

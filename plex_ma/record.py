@@ -5,7 +5,7 @@
     python -m plex_ma.record --policy random --out one.rrd --topdown-png one.png   # + a top-down PNG
     rerun episodes.rrd                        # open it in the viewer
 
-The episodes are run by ``plex_ma.evaluate.run_episodes`` on one world (the first
+The episodes are run by :func:`plex_ma.trainers.evaluation.run_episodes` on one world (the first
 ``--episodes`` episodes of the split's fixed set; generated ones for ``train``): greedily by
 the ``--checkpoint``'s networks, or with ``--planner`` / ``--executor`` standing in for either
 PLEX agent (``oracle``: the shortest-path oracles, ground truth; ``random``: random
@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     import torch
 
     from plex_ma.config import TrainConfig
-    from plex_ma.evaluate import load_policies, run_episodes
+    from plex_ma.trainers.evaluation import load_policies, run_episodes
     from plex_ma.trainers.checkpoint import CheckpointError
 
     # One world means batch-1 inference: more torch threads only spin (and beside other

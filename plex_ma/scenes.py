@@ -4,7 +4,7 @@
     python -m plex_ma.scenes check procgen --split test
     python -m plex_ma.scenes check /path/to/plans          # a directory of plan files
     python -m plex_ma.scenes render r2v --out DIR --count 6 [--ids ID,ID]
-    python -m plex_ma.scenes pack /path/to/plans | index  # maintainers: rebuild plex_ma/data/r2v
+    python -m plex_ma.scenes pack /path/to/plans | index  # maintainers: rebuild envs/sim/data/r2v
 
 ``check`` loads every scene of the source (for ``r2v`` every bundled plan of the split,
 all 1,040 with ``--split all``; for a directory every ``*.txt`` in it; for ``procgen``
@@ -35,7 +35,6 @@ from pathlib import Path
 
 import numpy as np
 
-CLOSE_GEODESIC = 5.76  # SPEC section 1: "close" episodes are below this
 GEODESIC_BINS = [1, 2, 3, 5, 7.5, 10, 15, 20, 30]
 QUANTILES = [0, 5, 25, 50, 75, 95, 100]
 
@@ -208,7 +207,7 @@ def summarise(name: str, recs: list[dict], episodes: int) -> dict:
         "episodes": len(geos),
         "geodesic_m": _quantiles(geos),
         "geodesic_histogram": {"bins_m": GEODESIC_BINS, "counts": hist},
-        "close_fraction": round(float(np.mean(np.asarray(geos) < CLOSE_GEODESIC)), 3) if geos else None,
+        "close_fraction": round(float(np.mean(np.asarray(geos) < CLOSE_FAR_SPLIT)), 3) if geos else None,
         "spec_violations": viol,
         "repairs": {k: {"total": repairs[k], "plans": repaired_plans[k]} for k in sorted(repairs)},
     }
@@ -238,7 +237,7 @@ def format_summary(s: dict) -> str:
     lines.append(f"   rooms:                       {q(s['rooms'])}")
     if s["episodes"]:
         lines.append(f"   episodes: {s['episodes']} ({s['episodes_per_scene']} per scene), "
-                     f"close (< {CLOSE_GEODESIC} m) {100 * s['close_fraction']:.1f}%")
+                     f"close (< {CLOSE_FAR_SPLIT} m) {100 * s['close_fraction']:.1f}%")
         lines.append(f"   geodesic distance m:         {q(s['geodesic_m'])}")
         b = s["geodesic_histogram"]["bins_m"]
         lines.append("   histogram: " + ", ".join(f"[{lo:g},{hi:g}) {c}" for lo, hi, c in
@@ -349,9 +348,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--no-episode", action="store_true", help="do not draw a sampled episode's start and goal")
     r.add_argument("--scale", type=_scale, default=DEFAULT_SCALE, help="metres per pixel of plans, or 'auto'")
     r.add_argument("--seed", type=int, default=0)
-    k = sub.add_parser("pack", help="(maintainers) rebuild plex_ma/data/r2v from a directory of plan files")
+    k = sub.add_parser("pack", help="(maintainers) rebuild envs/sim/data/r2v from a directory of plan files")
     k.add_argument("plans_dir")
-    sub.add_parser("index", help="(maintainers) rebuild plex_ma/data/r2v/index.json from the bundled plans")
+    sub.add_parser("index", help="(maintainers) rebuild envs/sim/data/r2v/index.json from the bundled plans")
     a = p.parse_args(argv)
 
     if a.cmd in ("pack", "index"):

@@ -22,6 +22,11 @@ import json
 import sys
 
 from plex_ma.config import parse
+from plex_ma.trainers import distributed
+from plex_ma.trainers.checkpoint import CheckpointError
+from plex_ma.trainers.device import DeviceError, resolve_device
+from plex_ma.trainers.plex import make_trainer
+from plex_ma.viz.record import record_training_episode
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -30,10 +35,6 @@ def main(argv: list[str] | None = None) -> dict:
     except ValueError as e:  # a bad value: one line naming the flag, no traceback
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
-    from plex_ma.trainers import distributed
-    from plex_ma.trainers.device import DeviceError, resolve_device
-    from plex_ma.trainers.plex import make_trainer
-
     try:
         device = resolve_device(cfg.device)
     except DeviceError as e:
@@ -47,11 +48,9 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"training {cfg.method}{'' if cfg.eli or not cfg.method.startswith('plex') else ' (no ELI)'} "
               f"for {cfg.total_steps:,} steps with {cfg.num_envs} worlds{workers} at {cfg.resolution} px on {f'cuda:{ctx.local_rank}' if ctx.active and device.type == 'cuda' else device} "
               f"-> {cfg.run_dir}")
-    from plex_ma.trainers.checkpoint import CheckpointError
-
     with distributed.graceful_stop():
         try:
-            trainer = make_trainer(cfg)
+            trainer = make_trainer(cfg, record=record_training_episode)  # rerun recordings into the run dir
         except CheckpointError as e:  # a bad --checkpoint or run dir: one line, no traceback
             print(f"error: {e}", file=sys.stderr)
             sys.exit(2)

@@ -4,7 +4,7 @@
     python scripts/failure_modes.py --checkpoint runs/x/latest.pt --split val --episodes 200
 
 Runs the planner (greedy; the map planner, or a checkpoint's learned planner) over the
-oracle executor on the split's fixed episodes through ``plex_ma.evaluate.run_episodes`` and prints, for every failed episode: the
+oracle executor on the split's fixed episodes through :func:`plex_ma.trainers.evaluation.run_episodes` and prints, for every failed episode: the
 actions it took, its collisions, the agent's largest distance from its mean position over
 the episode's last 100 actions ("spread": 0 m means it stood in place), and at the
 planner's last decision the (snapped) sub-goal's straight-line distance against its distance along
@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from plex_ma.config import TrainConfig
-from plex_ma.evaluate import load_policies, run_episodes
+from plex_ma.trainers.evaluation import load_policies, run_episodes
 
 TAIL = 100  # actions at the end of an episode over which the spread is measured
 

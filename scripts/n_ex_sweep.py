@@ -4,7 +4,7 @@
     python scripts/n_ex_sweep.py --checkpoint pretrained:plex-gru --n-ex 10 18
 
 Runs the same fixed episodes (greedy) once per N_EX value through
-``plex_ma.evaluate.run_episodes``, with every other setting taken from the checkpoint (or
+:func:`plex_ma.trainers.evaluation.run_episodes`, with every other setting taken from the checkpoint (or
 the defaults when both agents are stand-ins), and prints success and SPL for each. The
 executor turns 10 degrees an action, so at N_EX = 10 it cannot face a sub-goal behind it
 before control returns to the planner.
@@ -18,7 +18,7 @@ import dataclasses
 import torch
 
 from plex_ma.config import TrainConfig
-from plex_ma.evaluate import load_policies, run_episodes, summarize
+from plex_ma.trainers.evaluation import load_policies, run_episodes, summarize
 
 
 def main(argv: list[str] | None = None) -> list[dict]:

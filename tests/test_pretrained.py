@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from plex_ma.config import preset_defaults, validate
-from plex_ma.evaluate import load_policies, run_episodes
+from plex_ma.trainers.evaluation import load_policies, run_episodes
 from plex_ma.trainers.checkpoint import CheckpointError, export_pretrained, load_checkpoint, pretrained_names
 from plex_ma.trainers.plex import make_trainer
 

@@ -264,7 +264,7 @@ def test_sample_of_bundled_plans_load_or_reject_by_name():
 
 
 def test_r2v_source_is_registered():
-    assert "r2v" in sources.SOURCES and sources.DIRECTORY_RESOLVER is r2v.directory_scenes
+    assert sources.SOURCES["r2v"] is r2v.r2v_scenes
     scenes = load_scenes("r2v", "val", 3)
     assert len(scenes) == 3
     rejects = r2v.bundled_index()["rejects"]

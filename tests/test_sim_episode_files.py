@@ -28,7 +28,7 @@ def test_default_files_load_with_the_documented_shape(split):
     assert counts.max() - counts.min() <= 1
     d = np.array([e.geodesic_distance for e in eps])
     assert d.min() >= 1.0 and d.max() <= 30.0
-    assert 0.2 < np.mean(d < cli.CLOSE_FAR_THRESHOLD) < 0.8  # both close and far goals
+    assert 0.2 < np.mean(d < cli.CLOSE_FAR_SPLIT) < 0.8  # both close and far goals
     for e in eps[:: n // 50]:
         grid = bank.grids[bank.scene_ids.index(e.scene_id)]
         assert grid.is_navigable(np.array(e.start_position)) and grid.is_navigable(np.array(e.goal_position))

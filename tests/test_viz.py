@@ -172,7 +172,7 @@ def test_recording_follows_the_episode(tmp_path):
 
 def test_training_records_into_run_dir_without_changing_training(tmp_path):
     cfg = tiny_config(tmp_path, total_steps=2 * 2 * 16, record_interval=1)
-    trainer = make_trainer(cfg)
+    trainer = make_trainer(cfg, record=record_training_episode)
     trainer.train()
     trainer.close()
     rec_dir = tmp_path / "run" / "recordings"
@@ -185,7 +185,7 @@ def test_training_records_into_run_dir_without_changing_training(tmp_path):
 
     # the same run without recordings learns exactly the same
     plain = tiny_config(tmp_path / "plain", total_steps=cfg.total_steps, record_interval=0)
-    t2 = make_trainer(plain)
+    t2 = make_trainer(plain, record=record_training_episode)
     t2.train()
     t2.close()
 

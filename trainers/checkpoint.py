@@ -5,7 +5,7 @@ temporary file in the same directory, fsyncs it and renames it into place, so a 
 a full disk leaves the previous checkpoint untouched. A load that finds ``latest.pt``
 corrupt or truncated says so and falls back to the newest numbered checkpoint that loads.
 
-``pretrained:NAME`` names an agent shipped inside the package (``plex_ma/data/pretrained/
+``pretrained:NAME`` names an agent shipped inside the package (``trainers/data/pretrained/
 NAME.pt``; ``python -m plex_ma.pretrained`` lists them): a weights-only file whose weights
 are stored as float16 (loaded back as float32) beside the config and the command that
 trained it.
@@ -70,7 +70,7 @@ PRETRAINED_PREFIX = "pretrained:"
 
 
 def pretrained_dir() -> Path:
-    return Path(__file__).resolve().parent.parent / "plex_ma" / "data" / "pretrained"
+    return Path(__file__).resolve().parent / "data" / "pretrained"
 
 
 def pretrained_names() -> list[str]:

@@ -33,10 +33,12 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from plex_ma.config import TrainConfig
 from plex_ma.envs.rules import PLANNER
@@ -143,8 +145,12 @@ class EpisodeStats:
 class Trainer:
     """Shared run-dir handling: seeding, logging, checkpoints, resume, progress."""
 
-    def __init__(self, cfg: TrainConfig, log: bool = True):
+    def __init__(self, cfg: TrainConfig, log: bool = True, record: Callable[[Trainer], object] | None = None):
+        """``log``: write metrics to the run dir. ``record``: called with the trainer every
+        ``cfg.record_interval`` updates on the main worker (``python -m plex_ma.train``
+        passes :func:`plex_ma.viz.record.record_training_episode`)."""
         self.cfg = cfg
+        self.record = record
         self.dist = distributed.context()  # rank, world size; single-process unless torchrun started a group
         self._set_threads()
         torch.manual_seed(cfg.seed)
@@ -246,8 +252,6 @@ class Trainer:
     def _progress(self):
         if not self.cfg.progress or not self.dist.is_main:
             return None
-        from tqdm import tqdm
-
         return tqdm(total=self.cfg.total_steps, initial=min(self.step, self.cfg.total_steps), unit="step",
                     dynamic_ncols=True, mininterval=1.0)
 
@@ -288,10 +292,9 @@ class Trainer:
             logged = metrics
         if n_updates % cfg.checkpoint_interval == 0:
             self.save()
-        if cfg.record_interval and n_updates % cfg.record_interval == 0 and self.dist.is_main:
-            from plex_ma.viz.record import record_training_episode  # rerun recording hook
-
-            record_training_episode(self)
+        if self.record is not None and cfg.record_interval and n_updates % cfg.record_interval == 0 \
+                and self.dist.is_main:
+            self.record(self)
         if bar is not None:
             bar.update(min(self.step, cfg.total_steps) - bar.n)
             self._postfix(bar, sps)
@@ -340,8 +343,8 @@ class ImitationSet:
 class PlexTrainer(Trainer):
     """Independent PPO for the planner and the executor (see the module docstring)."""
 
-    def __init__(self, cfg: TrainConfig, log: bool = True):
-        super().__init__(cfg, log)
+    def __init__(self, cfg: TrainConfig, log: bool = True, record: Callable[[Trainer], object] | None = None):
+        super().__init__(cfg, log, record)
         self.planner: Planner = self.nets["planner"]
         self.executor: Executor = self.nets["executor"]
         self.np_rng = np.random.default_rng(cfg.seed + self.dist.seed_offset)
@@ -576,8 +579,8 @@ class PlexTrainer(Trainer):
 class FlatTrainer(Trainer):
     """Recurrent PPO for the flat baselines (PPO-GRU, PPO-SMT) on PointNav."""
 
-    def __init__(self, cfg: TrainConfig, log: bool = True):
-        super().__init__(cfg, log)
+    def __init__(self, cfg: TrainConfig, log: bool = True, record: Callable[[Trainer], object] | None = None):
+        super().__init__(cfg, log, record)
         self.env = PointNavVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["policy"] + self.dist.seed_offset,
                                      **env_kwargs(cfg))
         self.policy: FlatPolicy = self.nets["policy"]
@@ -628,5 +631,6 @@ class FlatTrainer(Trainer):
         return self._finish(bar, last_log)
 
 
-def make_trainer(cfg: TrainConfig, log: bool = True) -> Trainer:
-    return (PlexTrainer if cfg.method.startswith("plex") else FlatTrainer)(cfg, log)
+def make_trainer(cfg: TrainConfig, log: bool = True, record: Callable[[Trainer], object] | None = None) -> Trainer:
+    """The trainer of ``cfg.method``; ``log`` and ``record`` as in :class:`Trainer`."""
+    return (PlexTrainer if cfg.method.startswith("plex") else FlatTrainer)(cfg, log, record)

@@ -422,7 +422,7 @@ class EpisodeRecorder:
         flush_every: executor steps buffered before they are sent (1 with ``spawn``).
         max_image_size: subsample RGB and depth images larger than this (by a whole stride).
 
-    The protocol (``plex_ma.evaluate.run_episodes`` drives it): ``begin(env)`` after
+    The protocol (:func:`plex_ma.trainers.evaluation.run_episodes` drives it): ``begin(env)`` after
     ``env.reset()``, ``step(env, res, rows=rows)`` after a planner step,
     ``step(env, res, eli=eli)`` after an executor step (``res`` the ``PlexVecStep``; for a
     ``PointNavVectorEnv`` the tuple its ``step`` returns), and ``end()`` once, which
@@ -949,13 +949,13 @@ def record_training_episode(trainer, path: str | Path | None = None, raise_error
 
     Writes ``run_dir/recordings/update_<updates>.rrd`` (or ``path``): the first episode of
     the ``val`` split (``train`` if the scene source has no val split) on a separate
-    one-world env, run by ``plex_ma.evaluate.run_episodes``, with the run's training
+    one-world env, run by :func:`plex_ma.trainers.evaluation.run_episodes`, with the run's training
     curves so far (``train/...`` from ``metrics.jsonl``) in the same recording. Training
     is not disturbed: the actions are greedy (no sampling, so no RNG is drawn from) and
     the env is the recorder's own. A failure is reported as a warning and training goes
     on (``raise_errors=True`` raises instead). Returns the file, or None after a failure.
     """
-    from plex_ma.evaluate import run_episodes
+    from plex_ma.trainers.evaluation import run_episodes
     from plex_ma.trainers.logger import read_metrics
 
     import torch

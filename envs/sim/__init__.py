@@ -13,4 +13,3 @@ __all__ = [
     "TURN_RIGHT", "generate_episodes", "load_episodes", "load_scenes", "rasterize", "save_episodes", "scene_bank",
 ]
 
-from . import r2v as _r2v  # noqa: E402,F401  registers SOURCES["r2v"] and directory sources

@@ -33,6 +33,35 @@ MAX_GEODESIC = 30.0
 RATIO_THRESHOLD = 1.1
 FILE_VERSION = 1
 
+DATA_DIR = Path(__file__).resolve().parent / "data" / "episodes"
+
+#: Close (below) / far (at or above) split of the start-to-goal geodesic distance (m), paper Fig. 5b.
+CLOSE_FAR_SPLIT = 5.76
+
+#: (scenes, split) -> (number of episodes, seed) of the shipped default episode files.
+DEFAULT_FILES: dict[tuple[str, str], tuple[int, int]] = {
+    ("procgen", "val"): (500, 1),
+    ("procgen", "test"): (1000, 2),
+}
+
+
+def default_episode_file(scenes: str, split: str) -> Path:
+    """Path of the shipped fixed episode file of a scene source and split.
+
+    Raises ``ValueError`` for a split other than ``val``/``test`` (training samples
+    episodes on the fly) and ``FileNotFoundError`` when no file is shipped for the pair.
+    """
+    if split not in ("val", "test"):
+        raise ValueError(f"fixed episode files exist for the 'val' and 'test' splits, not {split!r} "
+                         "(training samples its episodes on the fly)")
+    path = DATA_DIR / f"{scenes}_{split}.json.gz"
+    if not path.is_file():
+        have = sorted(p.name for p in DATA_DIR.glob("*.json.gz")) if DATA_DIR.is_dir() else []
+        raise FileNotFoundError(
+            f"no fixed episode file for scenes={scenes!r} split={split!r} (expected {path}; shipped: {have}); "
+            f"make one with: python -m plex_ma.episodes make --scenes {scenes} --split {split} --out {path}")
+    return path
+
 
 class EpisodeFileError(ValueError):
     """An episode file is missing, corrupt, truncated or malformed; the message says which."""

@@ -3,7 +3,7 @@
 The plans are the 1,040 hand-annotated Japanese apartment floor plans of Liu, Wu, Kohli
 and Furukawa, "Raster-to-Vector: Revisiting Floorplan Transformation" (ICCV 2017),
 repository art-programmer/FloorplanTransformation, MIT licence. They ship with this
-package as one archive, ``plex_ma/data/r2v/plans.tar.xz`` (see the README there).
+package as one archive, ``envs/sim/data/r2v/plans.tar.xz`` (see the README there).
 
 Plan file format (one plan per file, the file stem is its id; tab-separated records)::
 
@@ -54,9 +54,9 @@ wrong (parse errors give the line number). Nothing else escapes :func:`load_plan
 
 Splits: a plan's split is fixed by its id alone (:func:`split_of`): the first 8 bytes
 of SHA-256 of the id, modulo 100: below 80 is ``train``, below 90 ``val``, the rest
-``test`` (about 80/10/10; the exact counts are in ``plex_ma/data/r2v/index.json``).
+``test`` (about 80/10/10; the exact counts are in ``envs/sim/data/r2v/index.json``).
 
-Sources (registered on import of :mod:`plex_ma.envs.sim`): ``SOURCES["r2v"]`` gives the
+Sources (listed in :data:`.sources.SOURCES`): ``SOURCES["r2v"]`` gives the
 bundled plans of a split that load, in id order (rejects skipped), and a directory
 given as the source loads every ``*.txt`` plan in it, whatever the split, with one
 warning listing the plans that failed and why. Scenes are cached per process (callers
@@ -84,8 +84,7 @@ from pathlib import Path
 
 import numpy as np
 
-import plex_ma as _plex_ma
-
+from . import scene as _scene
 from .scene import AGENT_RADIUS, CELL_SIZE, Scene, SceneError, SceneGrid, rasterize
 
 LOADER_VERSION = 1  # bump when a change of the repair or the checks changes which plans load
@@ -119,7 +118,7 @@ ROOM_LABELS = frozenset({
 })
 IGNORED = frozenset({"point"})
 
-DATA_DIR = Path(_plex_ma.__file__).resolve().parent / "data" / "r2v"
+DATA_DIR = Path(__file__).resolve().parent / "data" / "r2v"
 ARCHIVE_NAME = "plans.tar.xz"
 INDEX_NAME = "index.json"
 
@@ -430,8 +429,6 @@ def split_of(plan_id: str) -> str:
 def loader_fingerprint() -> str:
     """Changes whenever a loader setting, or the rasteriser's code, that decides whether a
     plan loads changes (then the shipped index is not trusted; see :func:`r2v_scenes`)."""
-    from . import scene as _scene
-
     try:
         raster_code = hashlib.sha256(
             (inspect.getsource(_scene.rasterize) + inspect.getsource(_scene._segment_cells)).encode()).hexdigest()
@@ -546,7 +543,7 @@ def load_directory(directory: str | os.PathLike, scale: float = DEFAULT_SCALE) -
 
 
 def directory_scenes(directory: str, split: str, num_scenes: int | None = None) -> list[Scene] | None:
-    """The resolver hook of :mod:`.sources`: every plan in a directory that loads, any split.
+    """The directory source of :func:`.sources.load_scenes`: every plan in a directory that loads, any split.
 
     Returns None when ``directory`` is not a directory (so the source stays unknown).
     Plans that fail are skipped with one ``warnings.warn`` listing them and why.
@@ -563,16 +560,6 @@ def directory_scenes(directory: str, split: str, num_scenes: int | None = None) 
                       f"that do not load:\n{lines}", stacklevel=3)
     return scenes if num_scenes is None else scenes[:num_scenes]
 
-
-def register() -> None:
-    """Make ``scenes="r2v"`` and directory sources available to :func:`.sources.load_scenes`."""
-    from . import sources
-
-    sources.SOURCES["r2v"] = r2v_scenes
-    sources.DIRECTORY_RESOLVER = directory_scenes
-
-
-register()
 
 
 # ----------------------------------------------------------------------------- packing

@@ -4,7 +4,7 @@
 a directory, the plans in it; ``"procgen+r2v"`` a mix (``num_scenes`` applies to each part). Each split draws from its own
 seed stream, so the train, val and test splits never share a house; by default they
 hold 72, 16 and 16 scenes (the paper's 72 train / 16 test shape), and any number can be
-asked for. Other sources (real floor plans) register themselves in ``SOURCES``.
+asked for. :data:`SOURCES` is the registry of named sources.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from typing import Callable
 
 import numpy as np
 
+from . import r2v
 from .bank import SceneBank
 from .procgen import generate_house
 from .scene import Scene, SceneError, SceneGrid, rasterize
@@ -45,9 +46,11 @@ def open_room_scenes(split: str, num_scenes: int | None = None) -> list[Scene]:
     return out
 
 
-# A source maps (split, num_scenes) to scenes. Loaders for other sources add themselves.
+#: The named scene sources: each maps (split, num_scenes) to scenes. A name that is not
+#: here is read as a directory of floor plans (:func:`.r2v.directory_scenes`).
 SOURCES: dict[str, Callable[[str, int | None], list[Scene]]] = {"procgen": procgen_scenes,
-                                                                "open-room": open_room_scenes}
+                                                                "open-room": open_room_scenes,
+                                                                "r2v": r2v.r2v_scenes}
 
 
 def check_split(split: str) -> None:
@@ -67,20 +70,10 @@ def load_scenes(scenes: str = "procgen", split: str = "train", num_scenes: int |
         return [sc for p in parts for sc in load_scenes(p, split, num_scenes)]
     if scenes in SOURCES:
         return SOURCES[scenes](split, num_scenes)
-    resolver = _directory_resolver()
-    if resolver is not None:
-        found = resolver(scenes, split, num_scenes)
-        if found is not None:
-            return found
+    found = r2v.directory_scenes(scenes, split, num_scenes)
+    if found is not None:
+        return found
     raise ValueError(f"unknown scene source {scenes!r}; known: {sorted(SOURCES)} or a directory of plans")
-
-
-def _directory_resolver():
-    """Hook for directory sources (set by the floor-plan loader when it is importable)."""
-    return DIRECTORY_RESOLVER
-
-
-DIRECTORY_RESOLVER = None
 
 
 @lru_cache(maxsize=16)
