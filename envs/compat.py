@@ -96,8 +96,8 @@ import supersuit as ss
 from gymnasium import spaces
 from supersuit.utils.base_aec_wrapper import BaseWrapper
 
-from .rules import ELI_DIM, InvalidAction
 from .plex_nav import env as native_env
+from .rules import ELI_DIM, InvalidAction
 from .sim.core import ACTION_NAMES
 from .spaces import MAX_GOAL_DISTANCE
 

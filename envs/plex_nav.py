@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import gymnasium
 import numpy as np
 from gymnasium.utils import EzPickle
 from pettingzoo import AECEnv
@@ -157,7 +158,6 @@ class raw_env(AECEnv, EzPickle):
         """``rgb_array``: the top-down view as an (H, W, 3) uint8 array. ``human``: draws it in
         the window (which every ``reset`` and ``step`` also does) and returns None."""
         if self.render_mode is None:
-            import gymnasium
 
             gymnasium.logger.warn("render() called without render_mode; create the env with "
                                   "render_mode='rgb_array' or 'human'")

@@ -11,13 +11,9 @@ __version__ = "0.1.0"
 # costs little when the machine is quiet. Must be set before torch or numba start OpenMP.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+import gymnasium as _gymnasium  # noqa: E402  (after the OpenMP setting above)
 
-def _register() -> None:
-    import gymnasium
-
-    if "plex_ma/PointNav-v0" not in gymnasium.registry:
-        gymnasium.register(id="plex_ma/PointNav-v0", entry_point="plex_ma.envs.pointnav:PointNavEnv",
-                           vector_entry_point="plex_ma.envs.gym_vector:PointNavGymVectorEnv")
-
-
-_register()
+# gymnasium.make("plex_ma/PointNav-v0") and gymnasium.make_vec(...) after `import plex_ma`
+if "plex_ma/PointNav-v0" not in _gymnasium.registry:
+    _gymnasium.register(id="plex_ma/PointNav-v0", entry_point="plex_ma.envs.pointnav:PointNavEnv",
+                        vector_entry_point="plex_ma.envs.gym_vector:PointNavGymVectorEnv")

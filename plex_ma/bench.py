@@ -65,18 +65,30 @@ recording over the training time of that many updates; the goal is at most 5 %).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
+import tempfile
 import time
 
+import gymnasium
+import numba
 import numpy as np
+import torch
 
-from plex_ma.config import DEVICE_HELP
+import plex_ma.viz.record as vr
+from plex_ma.config import DEVICE_HELP, TrainConfig, preset_defaults, validate
+from plex_ma.envs import plex_nav_v0
+from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
+from plex_ma.envs.sim.episodes import sample_episode
+from plex_ma.envs.vector import EXECUTOR, PlexVectorEnv
+from plex_ma.flops import matmul_gflops, model_flops_per_step
+from plex_ma.trainers.device import describe
+from plex_ma.trainers.plex import build_policies, make_trainer
 
 
 def machine() -> dict:
-    import numba
 
     return {"cpus": os.cpu_count(), "numba_threads": numba.get_num_threads(), "platform": platform.platform(),
             "python": platform.python_version()}
@@ -93,8 +105,6 @@ class _RawSim:
 
     def __init__(self, num_envs: int, resolution: int, seed: int, scenes: str, num_scenes: int | None,
                  episodes: list | None = None, steady: bool = False):
-        from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
-        from plex_ma.envs.sim.episodes import sample_episode
 
         self.bank = scene_bank(scenes, "train", num_scenes)
         self.sim = BatchedSim(self.bank, num_envs, resolution=resolution, seed=seed)
@@ -147,9 +157,7 @@ def bench_geodesic(queries: int, seed: int, scenes: str = "procgen", num_scenes:
     what the env asks after every executor move) against A* (``Geodesics.distance``) on the
     same queries. Each query goes from a random navigable point of a random scene to a
     point up to ``rho_max`` away in a random direction, snapped as the env snaps sub-goals."""
-    import numba
 
-    from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
 
     bank = scene_bank(scenes, "train", num_scenes)
     sim = BatchedSim(bank, queries, resolution=8, egomap=False)
@@ -193,8 +201,6 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
               num_scenes: int | None = None, rounds: int = 10, warmup: int = 20) -> dict:
     """AEC turns/s of one ``plex_nav_v0.env``, ``PlexVectorEnv`` steps/s at ``num_envs``
     worlds and the raw simulator's steps/s under the same settings (see the module docstring)."""
-    from plex_ma.envs import plex_nav_v0
-    from plex_ma.envs.vector import EXECUTOR, PlexVectorEnv
 
     rng = np.random.default_rng(seed)
     cfg = dict(resolution=resolution, scenes=scenes, num_scenes=num_scenes)
@@ -296,9 +302,7 @@ def bench_gymvec(num_envs: int = 16, resolution: int = 64, steps: int = 300, see
                  max_steps: int = 500) -> dict:
     """The batched gymnasium vector env against ``SyncVectorEnv`` of single envs, in
     alternating rounds on the same actions (see the module docstring)."""
-    import gymnasium
 
-    import plex_ma  # noqa: F401  (registers the env)
 
     cfg = dict(resolution=resolution, scenes=scenes, num_scenes=num_scenes, max_steps=max_steps)
     envs = {"vector": gymnasium.make_vec("plex_ma/PointNav-v0", num_envs=num_envs,
@@ -356,13 +360,7 @@ def bench_gymvec(num_envs: int = 16, resolution: int = 64, steps: int = 300, see
 def bench_record(preset: str = "cpu", updates: int = 20, record_interval: int = 10, default_interval: int | None = None,
                  seed: int = 0, method: str = "plex-gru") -> dict:
     """Training time with and without recordings (see the module docstring)."""
-    import dataclasses
-    import tempfile
-    from pathlib import Path
 
-    import plex_ma.viz.record as vr
-    from plex_ma.config import TrainConfig, preset_defaults
-    from plex_ma.trainers.plex import make_trainer
 
     if default_interval is None:
         default_interval = TrainConfig().record_interval or 50
@@ -411,13 +409,68 @@ def bench_record(preset: str = "cpu", updates: int = 20, record_interval: int = 
             "machine": machine()}
 
 
+def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192, num_envs: int | None = None,
+                resolution: int | None = None, seed: int = 0, overrides: dict[str, str] | None = None,
+                device: str = "auto") -> dict:
+    """End-to-end training throughput of a short run (``python -m plex_ma.bench train``).
+
+    Reports steps/s, the shares of wall time in simulation, inference and the update, the
+    models' FLOPs per step, this machine's matmul GFLOP/s with the same torch threads, and
+    the update's efficiency: the update's FLOPs (3x forward per sample per epoch) over its
+    wall time, divided by the matmul figure. ``overrides`` sets further TrainConfig fields
+    from strings (``{"num_minibatches": "4"}``); an unknown field raises ValueError.
+    """
+    cfg = preset_defaults(preset, method)
+    over = {"total_steps": steps, "progress": False, "seed": seed, "checkpoint_interval": 10**9, "device": device}
+    if num_envs:
+        over["num_envs"] = num_envs
+    if resolution:
+        over["resolution"] = resolution
+    fields = {f.name: f for f in dataclasses.fields(cfg)}
+    for key, text in (overrides or {}).items():
+        if key not in fields:
+            raise ValueError(f"--set: TrainConfig has no field {key!r}")
+        current = getattr(cfg, key)
+        if isinstance(current, bool):
+            if text.lower() not in ("true", "false", "1", "0"):
+                raise ValueError(f"--set {key}: expected true or false, got {text!r}")
+            over[key] = text.lower() in ("true", "1")
+        elif isinstance(current, (int, float)):
+            try:
+                over[key] = type(current)(text)
+            except ValueError:
+                raise ValueError(f"--set {key}: expected a {type(current).__name__}, got {text!r}") from None
+        else:
+            over[key] = text
+    with tempfile.TemporaryDirectory() as d:
+        cfg = validate(dataclasses.replace(cfg, run_dir=d, **over))
+        trainer = make_trainer(cfg, log=True)
+        result = trainer.train()
+        trainer.close()
+    flops = {k: model_flops_per_step(m.cpu()) for k, m in trainer.nets.items()}
+    worker = "executor" if "executor" in flops else "policy"
+    if cfg.torch_threads:
+        torch.set_num_threads(cfg.torch_threads)
+    peak = matmul_gflops(device=trainer.device)
+    update_s = result["perf/share_update"] * steps / result["perf/fps"]
+    # forward + backward ~ 3x the forward FLOPs, per stored transition and epoch
+    n_worker = trainer.updates[worker] * cfg.num_envs * cfg.rollout_steps
+    n_planner = trainer.updates.get("planner", 0) * cfg.n_pl * cfg.num_envs
+    update_flops = 3 * cfg.ppo_epochs * (n_worker * flops[worker] + n_planner * flops.get("planner", 0.0))
+    achieved = update_flops / max(update_s, 1e-9) / 1e9
+    return {"benchmark": "train", "method": method, "preset": preset, "num_envs": cfg.num_envs,
+            "resolution": cfg.resolution, "steps": steps, "steps_per_second": result["perf/fps"],
+            "share_sim": result["perf/share_sim"], "share_inference": result["perf/share_inference"],
+            "share_update": result["perf/share_update"], "share_other": result["perf/share_other"],
+            "model_flops_per_step": flops,
+            "matmul_gflops": peak, "update_gflops": achieved, "update_efficiency": achieved / peak,
+            "torch_threads": torch.get_num_threads(), **describe(trainer.device), "overrides": dict(overrides or {})}
+
+
 def bench_adam(preset: str = "cpu", steps: int = 20, rounds: int = 5, threads: int = 1) -> dict:
     """Milliseconds per Adam step over each PLEX network's parameters, for torch's three
     implementations (per-tensor loop, foreach, fused), timed in alternating rounds."""
-    import torch
 
-    from plex_ma.config import preset_defaults
-    from plex_ma.trainers.plex import build_policies
 
     torch.set_num_threads(threads)
     out = {"preset": preset, "threads": threads}
@@ -512,8 +565,6 @@ def main(argv: list[str] | None = None) -> None:
         out = bench_adam(a.preset, a.steps, a.rounds, a.threads)
         out["machine"] = machine()
     elif a.what == "train":
-        from plex_ma.bench_flops import bench_train
-
         overrides = {}
         for item in a.set:
             key, sep, value = item.partition("=")

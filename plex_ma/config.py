@@ -6,9 +6,12 @@ command line overrides the preset's value.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 from dataclasses import dataclass
 from typing import Literal
+
+import tyro
 
 Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt"]
 Preset = Literal["smoke", "cpu", "paper"]
@@ -239,9 +242,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
 
 def parse(argv: list[str] | None = None) -> TrainConfig:
     """Parse the command line: the preset first, then every flag on top of it."""
-    import argparse
 
-    import tyro
 
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--preset", default="cpu")

@@ -23,8 +23,7 @@ from plex_ma.envs.rules import PLANNER
 from plex_ma.envs.sim import load_episodes
 from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
-from plex_ma.trainers.evaluation import (METRICS, episode_set, format_table, load_policies, run_episodes,
-                                         summarize)
+from plex_ma.trainers.evaluation import METRICS, episode_set, format_table, load_policies, run_episodes, summarize
 from plex_ma.viz.record import EpisodeRecorder
 
 __all__ = ["METRICS", "agents_label", "episode_set", "format_table", "load_policies", "main", "run_episodes",

@@ -26,6 +26,7 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
 import time
 import zlib
@@ -34,6 +35,16 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
+
+from plex_ma.envs.sim import r2v
+from plex_ma.envs.sim.bank import SceneBank
+from plex_ma.envs.sim.episodes import CLOSE_FAR_SPLIT, MAX_GEODESIC, MIN_GEODESIC, Geodesics, sample_episode
+from plex_ma.envs.sim.procgen import generate_house
+from plex_ma.envs.sim.r2v import DEFAULT_SCALE
+from plex_ma.envs.sim.scene import SceneError, rasterize
+from plex_ma.envs.sim.sources import DEFAULT_NUM_SCENES, SPLITS, procgen_seed
+from plex_ma.envs.sim.topdown import topdown_view
 
 GEODESIC_BINS = [1, 2, 3, 5, 7.5, 10, 15, 20, 30]
 QUANTILES = [0, 5, 25, 50, 75, 95, 100]
@@ -44,8 +55,6 @@ QUANTILES = [0, 5, 25, 50, 75, 95, 100]
 
 def _tasks(source: str, split: str, num_scenes: int | None, scale) -> list[tuple]:
     """What to load: (kind, key, split, scale) per scene of the source."""
-    from plex_ma.envs.sim import r2v
-    from plex_ma.envs.sim.sources import DEFAULT_NUM_SCENES, SPLITS
 
     splits = list(SPLITS) if split == "all" else [split]
     if source == "r2v":
@@ -68,8 +77,6 @@ def _tasks(source: str, split: str, num_scenes: int | None, scale) -> list[tuple
 
 def _load(task: tuple):
     """(scene_id, Scene, SceneGrid) of a task; raises SceneError for a reject."""
-    from plex_ma.envs.sim import r2v
-    from plex_ma.envs.sim.scene import rasterize
 
     kind, key, split, scale = task
     if kind == "r2v":
@@ -83,22 +90,16 @@ def _load(task: tuple):
 
 
 def _procgen_one(split: str, index: int):
-    from plex_ma.envs.sim.procgen import generate_house
-    from plex_ma.envs.sim.sources import procgen_seed
 
     return generate_house(procgen_seed(split, index), scene_id=f"procgen-{split}-{index:05d}")
 
 
 def check_one(task: tuple, episodes: int = 5, seed: int = 0) -> dict:
     """Load one scene, measure it and sample ``episodes`` episodes in it."""
-    from plex_ma.envs.sim.bank import SceneBank
-    from plex_ma.envs.sim.episodes import MAX_GEODESIC, MIN_GEODESIC, Geodesics, sample_episode
-    from plex_ma.envs.sim.scene import SceneError
 
     kind, key, split, _ = task
     rec: dict = {"id": Path(str(key)).stem if kind != "procgen" else f"procgen-{split}-{key:05d}", "split": split}
     if kind in ("r2v", "file"):
-        from plex_ma.envs.sim import r2v
 
         try:
             data = r2v.bundled_plans()[key] if kind == "r2v" else Path(key).read_bytes()
@@ -154,7 +155,6 @@ def _check_star(args):
 
 def reason_key(reason: str) -> str:
     """Group a rejection message: drop the plan name, numbers and details after a colon."""
-    import re
 
     msg = reason.split(": ", 1)[1] if reason.startswith(("plan '", "scene '")) and ": " in reason else reason
     msg = re.sub(r"line \d+", "line N", msg)
@@ -267,12 +267,7 @@ def run_check(source: str, split: str, num_scenes: int | None, episodes: int, se
 
 def render(source: str, out: str, count: int, split: str, ids: list[str] | None, px_per_m: float,
            episode: bool, seed: int, scale) -> list[str]:
-    from PIL import Image
 
-    from plex_ma.envs.sim.bank import SceneBank
-    from plex_ma.envs.sim.episodes import Geodesics, sample_episode
-    from plex_ma.envs.sim.scene import SceneError
-    from plex_ma.envs.sim.topdown import topdown_view
 
     tasks = _tasks(source, split, None, scale)
     if ids:
@@ -322,7 +317,6 @@ def _scale(s: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from plex_ma.envs.sim.r2v import DEFAULT_SCALE
 
     p = argparse.ArgumentParser(prog="python -m plex_ma.scenes", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -354,7 +348,6 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
 
     if a.cmd in ("pack", "index"):
-        from plex_ma.envs.sim import r2v
 
         idx = r2v.pack(a.plans_dir) if a.cmd == "pack" else r2v.write_index(r2v.build_index(r2v.bundled_plans()))
         print(f"{r2v.DATA_DIR}: {idx['num_plans']} plans, {idx['num_plans'] - len(idx['rejects'])} load, "

@@ -42,6 +42,9 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from . import checkpoint
+from .checkpoint import CheckpointError, remove_stale_temporaries
+
 T = TypeVar("T")
 
 ENV_VARS = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
@@ -212,16 +215,14 @@ def broadcast_object(obj):
 # ---------------------------------------------------------------- trainer hooks
 def find_resumable(run_dir):
     """``checkpoint.find_resumable`` on rank 0, its answer (or its error) sent to every worker."""
-    from .checkpoint import CheckpointError, find_resumable as local_find, remove_stale_temporaries
-
     if _ctx.is_main:
         remove_stale_temporaries(run_dir)  # left by a kill during a save; nothing is saving now
     if not _ctx.active:
-        return local_find(run_dir)
+        return checkpoint.find_resumable(run_dir)
     answer = None
     if _ctx.is_main:
         try:
-            answer = ("ok", local_find(run_dir))
+            answer = ("ok", checkpoint.find_resumable(run_dir))
         except CheckpointError as e:
             answer = ("error", str(e))
     answer = broadcast_object(answer)

@@ -7,6 +7,8 @@ import json
 import math
 from pathlib import Path
 
+from torch.utils.tensorboard import SummaryWriter
+
 
 class MetricLogger:
     def __init__(self, run_dir: str | Path, tensorboard: bool = True):
@@ -15,7 +17,6 @@ class MetricLogger:
         self._f = open(self.run_dir / "metrics.jsonl", "a", buffering=1)
         self._tb = None
         if tensorboard:
-            from torch.utils.tensorboard import SummaryWriter
 
             self._tb = SummaryWriter(str(self.run_dir / "tb"))
 

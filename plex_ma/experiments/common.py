@@ -6,10 +6,14 @@ import json
 import math
 import os
 import platform
+import subprocess
 import tempfile
 from pathlib import Path
 
+import numba
 import numpy as np
+
+from . import repo_root
 
 
 def to_jsonable(x):
@@ -46,21 +50,12 @@ def write_json(path: str | os.PathLike, obj) -> Path:
 def machine() -> dict:
     info = {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
             "numpy": np.__version__}
-    try:
-        import numba
-
-        info["numba_threads"] = numba.get_num_threads()
-    except ImportError:  # pragma: no cover
-        pass
+    info["numba_threads"] = numba.get_num_threads()
     return info
 
 
 def provenance() -> dict:
     """The code the results came from: git commit and whether the simulator had local edits."""
-    import subprocess
-
-    from . import repo_root
-
     def git(*a):
         try:
             return subprocess.run(["git", *a], cwd=repo_root(), capture_output=True, text=True,

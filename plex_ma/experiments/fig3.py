@@ -44,6 +44,9 @@ from pathlib import Path
 
 import numpy as np
 
+from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
+from plex_ma.envs.sim.episodes import sample_episode
+
 from .common import machine, mean_sd_se, proportion, provenance, pyplot, save_figure, write_json
 
 FORWARD_STEP = 0.25
@@ -113,8 +116,6 @@ def free_space_walks(ns: np.ndarray, walks: int, rng: np.random.Generator) -> di
 
 # ------------------------------------------------------------------------ the run
 def draw_starts(bank, cfg: Fig3Config, rng: np.random.Generator) -> list:
-    from plex_ma.envs.sim import Geodesics
-    from plex_ma.envs.sim.episodes import sample_episode
 
     geo = Geodesics(bank)
     return [sample_episode(bank, k % len(bank), rng, geo, episode_id=k)[0] for k in range(cfg.starts)]
@@ -122,7 +123,6 @@ def draw_starts(bank, cfg: Fig3Config, rng: np.random.Generator) -> list:
 
 def rollouts(bank, episodes: list, ns: np.ndarray, cfg: Fig3Config, rng: np.random.Generator):
     """End positions (starts, len(ns), 2) and collision counts (starts, len(ns))."""
-    from plex_ma.envs.sim import BatchedSim
 
     K = len(episodes)
     n_max = int(ns.max())
@@ -168,7 +168,6 @@ def rollouts(bank, episodes: list, ns: np.ndarray, cfg: Fig3Config, rng: np.rand
 
 def measure(bank, episodes: list, ends: np.ndarray):
     """Grid-A* geodesic, exact-where-visible geodesic, euclidean and line of sight per (start, N)."""
-    from plex_ma.envs.sim import Geodesics
 
     geo = Geodesics(bank)
     K, J = ends.shape[:2]
@@ -212,7 +211,6 @@ def summarise(ns: np.ndarray, d: np.ndarray) -> dict:
 
 def run_fig3(cfg: Fig3Config) -> dict:
     """Run the experiment; returns the JSON-ready results (no files written)."""
-    from plex_ma.envs.sim import scene_bank
 
     cfg.validate()
     t0 = time.perf_counter()

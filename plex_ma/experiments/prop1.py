@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import binom
 
 from .common import machine, provenance, pyplot, save_figure, write_json
 
@@ -83,8 +84,6 @@ def beta_paper(alpha: float) -> float:
 # ------------------------------------------------------------------------ probabilities
 def exact_tail(ns: np.ndarray, alpha: float) -> np.ndarray:
     """P(S_N >= alpha N) exactly: S_N = 2 H_N - N with H_N ~ Binomial(N, 1/2)."""
-    from scipy.stats import binom
-
     k = np.ceil((1 + alpha) * ns / 2 - EPS).astype(np.int64)  # smallest H_N with 2H - N >= alpha N
     return binom.sf(k - 1, ns, 0.5)
 
