@@ -186,7 +186,7 @@ def test_orthogonal_init(planner):
 
 
 def test_flops_and_matmul_speed(planner):
-    from plex_ma.bench_flops import matmul_gflops, model_flops_per_step
+    from plex_ma.flops import matmul_gflops, model_flops_per_step
 
     ex = Executor("gru", 64)
     flops = model_flops_per_step(ex)

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-
-from plex_ma.config import TrainConfig
 from plex_ma.envs.sim import generate_episodes
 from plex_ma.envs.sim.episodes import CLOSE_FAR_SPLIT
 from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
+
+from plex_ma.config import TrainConfig
 
 from .checkpoint import CheckpointError, load_checkpoint
 from .driver import PlexDriver, make_executor, make_planner
