@@ -59,6 +59,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .rules import INFO_KEYS, InvalidAction, NavConfig, PointNavWorlds, make_config
+from .sim.core import NUM_ACTIONS
 from .sim.topdown import topdown_view
 from .spaces import pointnav_observation_space
 
@@ -89,7 +90,7 @@ class PointNavGymVectorEnv(VectorEnv):
         self.worlds = PointNavWorlds(self.config, self.num_envs)
         self.single_observation_space = pointnav_observation_space(self.config)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
-        self.single_action_space = gymnasium.spaces.Discrete(4)
+        self.single_action_space = gymnasium.spaces.Discrete(NUM_ACTIONS)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         n = self.num_envs
         self._autoreset = np.zeros(n, np.bool_)

@@ -34,6 +34,7 @@ import gymnasium
 import numpy as np
 
 from .rules import NavConfig, PointNavWorlds, make_config
+from .sim.core import NUM_ACTIONS
 from .sim.topdown import topdown_view
 from .spaces import pointnav_observation_space
 from .viewer import HumanViewer
@@ -50,7 +51,7 @@ class PointNavEnv(gymnasium.Env):
         self.config: NavConfig = make_config(NavConfig, config)
         self.worlds = PointNavWorlds(self.config, 1)
         self.observation_space = pointnav_observation_space(self.config)
-        self.action_space = gymnasium.spaces.Discrete(4)
+        self.action_space = gymnasium.spaces.Discrete(NUM_ACTIONS)
         self._path: list[np.ndarray] = []
         self._seeded = False
 

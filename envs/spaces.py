@@ -10,6 +10,7 @@ import numpy as np
 from gymnasium import spaces
 
 from .rules import ELI_DIM, NavConfig, PlexConfig
+from .sim.core import NUM_ACTIONS
 
 EGO_CHANNELS = 2  # obstacles, explored free space
 EGO_SIZE = 32
@@ -50,7 +51,7 @@ def executor_observation_space(cfg: PlexConfig) -> spaces.Dict:
 
 def executor_action_space(cfg: PlexConfig) -> spaces.Dict:
     return spaces.Dict({
-        "action": spaces.Discrete(4),
+        "action": spaces.Discrete(NUM_ACTIONS),
         "eli": spaces.Box(-np.inf, np.inf, (ELI_DIM,), np.float32),
     })
 

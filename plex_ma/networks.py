@@ -30,10 +30,9 @@ from torch import nn
 from torch.nn import functional as F
 from torch.distributions import Categorical, Normal
 
-from plex_ma.envs.sim.core import STOP
+from plex_ma.envs.rules import ELI_DIM
+from plex_ma.envs.sim.core import NUM_ACTIONS, STOP
 
-ELI_DIM = 128
-NUM_ACTIONS = 4  # STOP, MOVE_FORWARD, TURN_LEFT, TURN_RIGHT
 # float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
 # `|theta| <= pi` range check; clamp to the float32 just below pi instead.
 PI32 = float(np.nextafter(np.float32(np.pi), np.float32(0)))
