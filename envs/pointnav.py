@@ -33,7 +33,7 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 
-from .rules import NavConfig, PointNavWorlds, make_config
+from .rules import InvalidAction, NavConfig, PointNavWorlds, make_config
 from .sim.core import NUM_ACTIONS
 from .sim.topdown import topdown_view
 from .spaces import pointnav_observation_space
@@ -89,7 +89,7 @@ class PointNavEnv(gymnasium.Env):
 
     def step(self, action):
         if self.worlds.done[0]:
-            raise RuntimeError("step() called after the episode ended; call reset()")
+            raise InvalidAction("step() called after the episode ended; call reset()")
         if isinstance(action, (dict, list, tuple, str)) or np.ndim(action) != 0:
             raise ValueError(f"action must be an integer in 0..3, got {action!r}")
         rew, term, trunc = self.worlds.step(np.reshape(action, (1,)))
