@@ -245,6 +245,11 @@ class _Worlds:
     def goal_vector(self, rows) -> np.ndarray:
         return self.sim.polar_to(self.sim.goal[rows], rows)
 
+    def pose(self, rows) -> np.ndarray:
+        """(len(rows), 3) float64: the true x, y (m) and heading (rad) of the agents in ``rows``."""
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        return np.concatenate([self.sim.pos[rows], self.sim.heading[rows, None]], axis=1)
+
 
 @dataclass
 class PlexStep:

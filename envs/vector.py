@@ -29,7 +29,11 @@ from .spaces import (executor_action_space, executor_observation_space, planner_
 
 @dataclass
 class PlexVecStep:
-    """One batched step. ``turn`` says whose action each world needs next."""
+    """One batched step. ``turn`` says whose action each world needs next.
+
+    The fields about ended episodes (``episode_infos``, ``final_executor_obs``,
+    ``final_pose``) have one row per world whose episode ended in this step, in world
+    order (``np.flatnonzero(terminated | truncated)``), taken before the autoreset."""
 
     turn: np.ndarray  # (N,) int8: PLANNER (0) or EXECUTOR (1)
     planner_obs: dict  # arrays (N, ...); valid where turn == PLANNER
@@ -43,6 +47,7 @@ class PlexVecStep:
     truncated: np.ndarray  # (N,) bool: the episode ended by max_steps (then reset)
     episode_infos: list  # one info dict (with success, spl) per world whose episode ended
     final_executor_obs: dict | None  # executor obs at the end of ended episodes (rows = ended)
+    final_pose: np.ndarray | None  # (ended, 3) float64: x, y (m), heading (rad) at the end (rows = ended)
 
 
 class PlexVectorEnv:
@@ -90,15 +95,17 @@ class PlexVectorEnv:
         out = w.step(stop=stop, subgoal=subgoal, action=action, eli=eli)
         ended = np.flatnonzero(out.terminated | out.truncated)
         infos = [w.info(int(i)) for i in ended]
-        final = None
+        final = final_pose = None
         if len(ended):
             final = {k: v.copy() for k, v in w.executor_obs(ended).items()}
+            final_pose = w.pose(ended)
             w.reset_rows(ended)
         return PlexVecStep(turn=w.turn.copy(), planner_obs=self._planner_obs(), executor_obs=self._executor_obs(),
                            rewards=out.rewards, acted=out.acted, executor_turn_end=out.executor_turn_end,
                            executor_stopped=out.executor_stopped, executor_reached=out.executor_reached,
                            terminated=out.terminated,
-                           truncated=out.truncated, episode_infos=infos, final_executor_obs=final)
+                           truncated=out.truncated, episode_infos=infos, final_executor_obs=final,
+                           final_pose=final_pose)
 
     def info(self, i: int) -> dict:
         return self.worlds.info(i)
@@ -118,6 +125,10 @@ class PointNavVectorEnv:
     ``step(actions)`` returns ``(obs, rewards, terminated, truncated, infos)`` where
     ``infos`` is a list of info dicts of the episodes that ended in this step, and
     ``obs`` of ended worlds is already the next episode's first observation.
+
+    After each ``step``, ``final_pose`` holds the (ended, 3) float64 x, y (m) and heading
+    (rad) of the agents whose episode ended in it, taken before the autoreset, in the
+    order of ``infos`` (None if none ended): the returned 5-tuple is the gymnasium one.
     """
 
     def __init__(self, num_envs: int, seed: int | None = None, **config):
@@ -125,6 +136,7 @@ class PointNavVectorEnv:
         self.num_envs = int(num_envs)
         self.worlds = PointNavWorlds(self.config, self.num_envs, seed)
         self.observation_space = pointnav_observation_space(self.config)
+        self.final_pose: np.ndarray | None = None
 
     @property
     def scene_ids(self) -> list[str]:
@@ -139,6 +151,7 @@ class PointNavVectorEnv:
         if seed is not None:
             self.worlds.seed(seed)
         self.worlds.reset_rows(np.arange(self.num_envs))
+        self.final_pose = None
         return self._obs()
 
     def step(self, actions):
@@ -146,7 +159,9 @@ class PointNavVectorEnv:
         rew, term, trunc = w.step(actions)
         ended = np.flatnonzero(term | trunc)
         infos = [w.info(int(i)) for i in ended]
+        self.final_pose = None
         if len(ended):
+            self.final_pose = w.pose(ended)
             w.reset_rows(ended)
         return self._obs(), rew, term, trunc, infos
 

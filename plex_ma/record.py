@@ -21,7 +21,14 @@ import argparse
 import json
 import sys
 
-from plex_ma.config import DEVICE_HELP
+import torch
+from PIL import Image
+
+from plex_ma.config import DEVICE_HELP, TrainConfig
+from plex_ma.trainers.checkpoint import CheckpointError
+from plex_ma.trainers.device import DeviceError, resolve_device
+from plex_ma.trainers.evaluation import load_policies, run_episodes
+from plex_ma.viz.record import EpisodeRecorder
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -47,8 +54,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--topdown-png", default=None, help="also write the top-down picture of the last episode here")
     p.add_argument("--device", default="auto", help=DEVICE_HELP)
     a = p.parse_args(argv)
-    from plex_ma.trainers.device import DeviceError, resolve_device
-
     try:
         device = resolve_device(a.device)
     except DeviceError as e:
@@ -63,16 +68,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     a.planner, a.executor = a.planner or "learned", a.executor or "learned"
     if not a.checkpoint and "learned" in (a.planner, a.executor):
         p.error("--checkpoint is needed unless neither --planner nor --executor is learned")
-    from plex_ma.viz.record import EpisodeRecorder
-
     rec = EpisodeRecorder(a.out, max_episodes=a.episodes, images=not a.no_images, jpeg_quality=a.jpeg_quality,
                           spawn=a.spawn, name=None)
-    import torch
-
-    from plex_ma.config import TrainConfig
-    from plex_ma.trainers.evaluation import load_policies, run_episodes
-    from plex_ma.trainers.checkpoint import CheckpointError
-
     # One world means batch-1 inference: more torch threads only spin (and beside other
     # busy processes made an episode several times slower).
     torch.set_num_threads(1)
@@ -87,8 +84,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
     results = run_episodes(cfg, nets, split=a.split, episodes=a.episodes, scenes=a.scenes, num_envs=1,
                            recorder=rec, planner=a.planner, executor=a.executor, seed=a.seed)
     if a.topdown_png and rec.episodes:
-        from PIL import Image
-
         Image.fromarray(rec.topdown(-1)).save(a.topdown_png)
     for r in rec.episodes:
         print(json.dumps({k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()}))

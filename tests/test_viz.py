@@ -7,6 +7,7 @@ import dataclasses
 import json
 import math
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,11 +15,12 @@ import rerun as rr
 import torch
 
 from plex_ma.config import TrainConfig, preset_defaults, validate
-from plex_ma.envs.vector import PlexVectorEnv
+from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
 from plex_ma.record import main as record_main
 from plex_ma.trainers.driver import PlexDriver, RandomExecutor, RandomPlanner
 from plex_ma.trainers.checkpoint import atomic_save
 from plex_ma.trainers.plex import CHECKPOINT_FORMAT, build_policies, make_trainer
+from plex_ma.viz.layout import entity_table_markdown
 from plex_ma.viz.record import (ENTITY_PATHS, EpisodeRecorder, ego_pixel, pca_2d, record_training_episode,
                                 rerun_executable)
 
@@ -164,7 +166,7 @@ def test_recording_follows_the_episode(tmp_path):
         assert got["finished"] and got["steps"] == want["steps"]
         assert got["collisions"] == want["collisions"] and got["success"] == want["success"]
         assert math.isclose(got["distance_to_goal"], want["distance_to_goal"], abs_tol=1e-9)
-    assert "reset_rows" not in vars(env.worlds)  # the recorder's hook is gone
+    assert "reset_rows" not in vars(env.worlds)  # the recorder leaves the env as it is
     verify(tmp_path / "w1.rrd")
     for paths, _ in recordings(tmp_path / "w1.rrd"):
         assert not paths & {"executor/rgb", "executor/depth", "planner/ego_map"}
@@ -233,3 +235,33 @@ def test_helpers():
     p = pca_2d(x)
     assert p.shape == (50, 2) and p[:, 0].var() >= p[:, 1].var() > 0
     assert not pca_2d(np.ones((5, 128))).any() and pca_2d(np.ones((1, 128))).shape == (1, 2)
+
+
+def test_docs_entity_table_is_the_layout_table():
+    """docs/viz.md holds exactly what ``python -m plex_ma.viz.layout`` prints."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "viz.md").read_text()
+    start = "<!-- entity table: the output of python -m plex_ma.viz.layout -->\n"
+    body = doc.split(start, 1)[1].split("<!-- end of entity table -->", 1)[0]
+    assert body == entity_table_markdown()
+    assert [line.split("`")[1] for line in body.splitlines()[2:]] == list(ENTITY_PATHS)
+
+
+def test_vector_envs_report_the_final_pose():
+    """The pose an episode ended at comes with the step that ended it, before the autoreset."""
+    env = PlexVectorEnv(2, seed=1, resolution=32, max_steps=40, num_scenes=2)
+    env.reset()
+    before = env.worlds.pose(np.arange(2))
+    res = env.step(stop=np.ones(2, np.int64), subgoal=np.zeros((2, 2)))  # both planners stop on the spot
+    assert res.terminated.all()
+    np.testing.assert_array_equal(res.final_pose, before)
+    res = env.step(stop=np.zeros(2, np.int64), subgoal=np.zeros((2, 2)))
+    assert res.final_pose is None
+
+    flat = PointNavVectorEnv(2, seed=1, resolution=32, max_steps=40, num_scenes=2)
+    flat.reset()
+    before = flat.worlds.pose(np.arange(2))
+    _, _, term, _, infos = flat.step(np.zeros(2, np.int64))  # STOP
+    assert term.all() and len(infos) == 2
+    np.testing.assert_array_equal(flat.final_pose, before)
+    flat.step(np.ones(2, np.int64))
+    assert flat.final_pose is None
