@@ -15,6 +15,11 @@ navigation does: cells never seen count as free, observed obstacle cells are blo
   goal itself when it is nearer than that.
 - When the agent's cell cannot reach the target on the map, it falls back to a sub-goal
   1.5 m towards the goal.
+- With ``line_of_sight`` (the ``map-los`` planner) the sub-goal is the farthest cell of
+  that path, within ``lookahead``, that a straight line from the agent reaches over cells
+  seen as floor and free of obstacles (the first cell of the path when none is): a
+  sub-goal a learned executor can walk straight to, never one behind a wall or in space
+  it has not seen.
 
 It is a baseline, a teacher for the learned planner (``--teacher map``) and a diagnostic:
 ``python -m plex_ma.evaluate --planner map --executor oracle``.
@@ -56,7 +61,21 @@ def _distances(blocked, ga, gb, nb):
 
 
 @njit(cache=True)
-def _plan(obstacles, d, th, cell, lookahead, nb):
+def _seen_free_line(obstacles, explored, a0, b0, a1, b1):
+    """True if the straight line between the centres of cells (a0, b0) and (a1, b1)
+    crosses only cells seen as floor and free of obstacles (sampled every quarter cell)."""
+    n = int(4 * max(abs(a1 - a0), abs(b1 - b0))) + 1
+    for k in range(1, n + 1):
+        t = k / n
+        a = int(math.floor(a0 + 0.5 + t * (a1 - a0)))
+        b = int(math.floor(b0 + 0.5 + t * (b1 - b0)))
+        if obstacles[a, b] > 0.5 or explored[a, b] <= 0.0:
+            return False
+    return True
+
+
+@njit(cache=True)
+def _plan(obstacles, explored, d, th, cell, lookahead, nb, line_of_sight):
     """(rho, theta) of the sub-goal for one ego map (see the module docstring)."""
     s = obstacles.shape[0]
     if d <= lookahead:
@@ -82,7 +101,10 @@ def _plan(obstacles, d, th, cell, lookahead, nb):
         if not np.isfinite(best):
             return min(d, 1.5), th
         a, b = bx, by
-    walked = 0.0
+    a0, b0 = a, b
+    walked, first = 0.0, True
+    first_a, first_b = a, b
+    seen_a, seen_b = -1, -1  # the farthest path cell so far in a straight line over seen floor
     while walked < lookahead / cell and dist[a, b] > 0:
         best, bx, by, step = dist[a, b], a, b, 0.0
         for k in range(nb.shape[0]):
@@ -93,6 +115,16 @@ def _plan(obstacles, d, th, cell, lookahead, nb):
             break
         a, b = bx, by
         walked += step
+        if first:
+            first_a, first_b = a, b
+            first = False
+        if line_of_sight:
+            if _seen_free_line(obstacles, explored, a0, b0, a, b):
+                seen_a, seen_b = a, b
+            else:
+                break
+    if line_of_sight:
+        a, b = (seen_a, seen_b) if seen_a >= 0 else (first_a, first_b)
     f, l = (s / 2 - a - 0.5) * cell, (s / 2 - b - 0.5) * cell
     return math.hypot(f, l), math.atan2(l, f)
 
@@ -105,8 +137,10 @@ class MapPlanner:
     name = "map"
     ground_truth = False
 
-    def __init__(self, cell: float = 0.5, lookahead: float = 2.0, stop_distance: float = 0.19):
+    def __init__(self, cell: float = 0.5, lookahead: float = 2.0, stop_distance: float = 0.19,
+                 line_of_sight: bool = False):
         self.cell, self.lookahead, self.stop_distance = float(cell), float(lookahead), float(stop_distance)
+        self.line_of_sight = bool(line_of_sight)
 
     def decide(self, obs: dict) -> tuple[np.ndarray, np.ndarray]:
         """(stop (k,) int64, subgoal (k, 2) float32)."""
@@ -115,5 +149,6 @@ class MapPlanner:
         stop = (goal[:, 0] < self.stop_distance).astype(np.int64)
         sub = np.zeros((len(goal), 2), np.float32)
         for k in range(len(goal)):
-            sub[k] = _plan(ego[k, 0], goal[k, 0], goal[k, 1], self.cell, self.lookahead, _NEIGHBOURS)
+            sub[k] = _plan(ego[k, 0], ego[k, 1], goal[k, 0], goal[k, 1], self.cell, self.lookahead, _NEIGHBOURS,
+                           self.line_of_sight)
         return stop, sub

@@ -43,8 +43,8 @@ class TrainConfig:
     """PLEX only: scene source during the planner warm-up (e.g. open-room, where random sub-goals are reachable); None: --scenes"""
     warmup_max_steps: int = 40
     """PLEX only: agent actions per episode on --warmup-scenes (short episodes keep the agent away from walls, where snapped sub-goals are trivially close)"""
-    teacher: Literal["map", "oracle"] = "map"
-    """PLEX only: the planner that sets the sub-goals during --teacher-subgoal-steps and that the learned planner imitates during --planner-imitation-steps: map (shortest paths on the agent's own ego map, the learned planner's observations only) or oracle (shortest paths in the true map, ground truth)"""
+    teacher: Literal["map", "map-los", "oracle"] = "map"
+    """PLEX only: the planner that sets the sub-goals during --teacher-subgoal-steps and that the learned planner imitates during --planner-imitation-steps: map (shortest paths on the agent's own ego map, the learned planner's observations only), map-los (the same, with each sub-goal in a straight line over floor the agent has seen) or oracle (shortest paths in the true map, ground truth)"""
     teacher_subgoal_steps: int = 0
     """PLEX only: after the warm-up, environment steps in the training scenes during which the --teacher planner sets the sub-goals and only the executor learns"""
     planner_imitation_steps: int = 0
@@ -223,7 +223,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
     need(cfg.teacher_subgoal_steps >= 0, "teacher_subgoal_steps", "must be >= 0")
-    need(cfg.teacher in ("map", "oracle"), "teacher", "must be 'map' or 'oracle'")
+    need(cfg.teacher in ("map", "map-los", "oracle"), "teacher", "must be 'map', 'map-los' or 'oracle'")
     need(cfg.planner_imitation_steps >= 0, "planner_imitation_steps", "must be >= 0")
     need(not (cfg.planner_imitation_steps and cfg.planner != "learn"), "planner_imitation_steps",
          "trains the planner: needs --planner learn")

@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--checkpoint", default=None,
                    help="checkpoint file (e.g. runs/x/latest.pt, or pretrained:plex-gru); not needed when both "
                         "PLEX agents are stand-ins")
-    p.add_argument("--planner", choices=["learned", "oracle", "random", "map"], default="learned",
+    p.add_argument("--planner", choices=["learned", "oracle", "random", "map", "map-los"], default="learned",
                    help="PLEX planner: the checkpoint's, the shortest-path oracle (ground truth), random, or "
                         "shortest paths on the agent's own ego map (no ground truth)")
     p.add_argument("--executor", choices=["learned", "oracle", "random"], default="learned",

@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", help="checkpoint file whose networks act (greedily), or pretrained:NAME")
     p.add_argument("--policy", choices=["random"], help="a random planner/executor pair instead of a checkpoint")
-    p.add_argument("--planner", choices=["learned", "oracle", "random", "map"], default=None,
+    p.add_argument("--planner", choices=["learned", "oracle", "random", "map", "map-los"], default=None,
                    help="PLEX planner (default: the checkpoint's; oracle = ground truth; map = shortest paths on "
                         "the agent's own ego map)")
     p.add_argument("--executor", choices=["learned", "oracle", "random"], default=None,

@@ -65,3 +65,28 @@ def test_map_planner_over_the_oracle_executor_navigates():
         infos.update({i["episode_id"]: i for i in s.result.episode_infos})
     success = np.mean([infos[e.episode_id]["success"] for e in env.worlds.fixed_episodes])
     assert success >= 0.6, success
+
+
+def _cell(sub):
+    """The ego-map cell (row, column) of a sub-goal (rho, theta)."""
+    f, l = sub[0] * math.cos(sub[1]), sub[0] * math.sin(sub[1])
+    return int(math.floor(16 - f / 0.5)), int(math.floor(16 - l / 0.5))
+
+
+def test_line_of_sight_sub_goals_stay_on_seen_floor():
+    """Seen floor 2 m ahead and 1-1.5 m to each side, unseen space beyond: the plain
+    planner's sub-goal, 2 m along its path towards a goal ahead and to the right, lies in
+    unseen space; map-los cuts it to the seen floor, nearer. With everything seen and free
+    the two agree."""
+    ego = np.zeros((1, 2, 32, 32), np.float32)
+    ego[0, 1, 12:16, 13:19] = 1.0  # seen floor: 0-2 m ahead, 1.5 m left to 1 m right
+    goal = np.array([[10.0, -0.6]], np.float32)
+    _, plain = MapPlanner().decide({"ego_map": ego, "goal": goal})
+    _, los = MapPlanner(line_of_sight=True).decide({"ego_map": ego, "goal": goal})
+    assert ego[0, 1][_cell(plain[0])] == 0.0, plain  # unseen
+    assert ego[0, 1][_cell(los[0])] == 1.0, los  # seen floor
+    assert los[0, 0] < plain[0, 0] - 0.2 and los[0, 1] < 0, (los, plain)
+    ego[0, 1] = 1.0
+    _, los = MapPlanner(line_of_sight=True).decide({"ego_map": ego, "goal": goal})
+    _, plain = MapPlanner().decide({"ego_map": ego, "goal": goal})
+    assert np.allclose(los, plain), (los, plain)

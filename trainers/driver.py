@@ -92,10 +92,11 @@ class MapPlannerPolicy:
     """The shortest-path planner on the agent's own ego map (:mod:`plex_ma.envs.map_planner`):
     the learned planner's observations only, no ground truth."""
 
-    learns, ground_truth, name = False, False, "map"
+    learns, ground_truth = False, False
 
-    def __init__(self, env: PlexVectorEnv | None = None):
-        self.planner = MapPlanner()
+    def __init__(self, env: PlexVectorEnv | None = None, line_of_sight: bool = False):
+        self.planner = MapPlanner(line_of_sight=line_of_sight)
+        self.name = "map-los" if line_of_sight else "map"
 
     def decide(self, obs: dict, rows: np.ndarray) -> dict:
         stop, sub = self.planner.decide(obs)
@@ -265,7 +266,8 @@ class PlexDriver:
 def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None,
                  teacher: str = "oracle", **random_kw):
     """A planner policy by name: 'learned' (needs ``net``), 'imitating' (the learned one
-    with the ``teacher`` planner's decisions beside its own), 'random', 'oracle' or 'map'."""
+    with the ``teacher`` planner's decisions beside its own), 'random', 'oracle', 'map' or 'map-los'
+    (the map planner with sub-goals in a straight line over seen floor)."""
     if kind in ("learn", "learned", "imitating"):
         if net is None:
             raise ValueError("a learned planner needs a network (a checkpoint)")
@@ -275,9 +277,9 @@ def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = 
         return RandomPlanner(rng=rng, **({"max_distance": env.config.rho_max} | random_kw))
     if kind == "oracle":
         return OraclePlannerPolicy(env)
-    if kind == "map":
-        return MapPlannerPolicy(env)
-    raise ValueError(f"unknown planner {kind!r}; choose learned, random, oracle or map")
+    if kind in ("map", "map-los"):
+        return MapPlannerPolicy(env, line_of_sight=kind == "map-los")
+    raise ValueError(f"unknown planner {kind!r}; choose learned, random, oracle, map or map-los")
 
 
 def make_executor(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None):
