@@ -242,8 +242,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
 
 def parse(argv: list[str] | None = None) -> TrainConfig:
     """Parse the command line: the preset first, then every flag on top of it."""
-
-
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--preset", default="cpu")
     pre.add_argument("--method", default="plex-gru")
