@@ -4,6 +4,8 @@ import runpy
 import sys
 from pathlib import Path
 
+import numpy as np
+
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "failure_modes.py"
 
 
@@ -31,3 +33,20 @@ def test_n_ex_sweep_runs_each_value(monkeypatch, capsys):
     assert [int(r[0]) for r in rows] == [10, 18]
     s10, s18 = (float(r[1]) for r in rows)
     assert s18 >= 0.9 and s18 > s10
+
+
+def test_executor_turns_separate_straight_and_detour_sub_goals():
+    """``scripts/executor_turns.py``: under the map planner, the oracle executor ends most
+    turns at its sub-goal; map-los sets fewer sub-goals that need a detour than map."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    import executor_turns
+    from plex_ma.config import TrainConfig
+
+    cfg = TrainConfig(method="plex-gru", n_ex=18, resolution=64)
+    a = executor_turns.turns(cfg, {}, "map", "oracle", steps=150, worlds=8)
+    b = executor_turns.turns(cfg, {}, "map-los", "oracle", steps=150, worlds=8)
+    assert len(a) > 20 and len(b) > 20
+    assert np.mean(b[:, 2] < 0.5) > 0.6  # the oracle executor reaches the sub-goals of map-los
+    detour = lambda t: np.mean(t[:, 1] > executor_turns.DETOUR_RATIO * t[:, 0] + executor_turns.DETOUR_SLACK)  # noqa: E731
+    assert detour(b) < detour(a), (detour(a), detour(b))
+    assert "detour" in executor_turns.report(a)
