@@ -12,7 +12,7 @@ from gymnasium.utils import EzPickle
 from pettingzoo import AECEnv
 from pettingzoo.utils import wrappers
 
-from .rules import EXECUTOR, PLANNER, InvalidAction, PlexConfig, PlexWorlds, make_config
+from .rules import EXECUTOR, PLANNER, InvalidAction, OneWorldEnv, PlexConfig, PlexWorlds, make_config
 from .sim.topdown import topdown_view
 from .spaces import executor_action_space, executor_observation_space, planner_action_space, planner_observation_space
 from .viewer import HumanViewer
@@ -37,7 +37,7 @@ class _OrderEnforcing(wrappers.OrderEnforcingWrapper):
         super().step(action)
 
 
-class raw_env(AECEnv, EzPickle):
+class raw_env(OneWorldEnv, AECEnv, EzPickle):
     """The PLEX Planner/Executor environment; see the module docstring."""
 
     metadata = {"name": "plex_nav_v0", "render_modes": ["human", "rgb_array"], "is_parallelizable": False,
@@ -61,24 +61,6 @@ class raw_env(AECEnv, EzPickle):
         self.executor_memory_restart = self.config.executor_memory_restart
         self._path: list[np.ndarray] = []
         self._seeded = False
-
-    @property
-    def scene_id(self) -> str:
-        """The string id of the current episode's scene (``infos[agent]["scene_index"]``
-        indexes :attr:`scene_ids`)."""
-        if self.worlds.sim.episodes[0] is None:
-            raise RuntimeError("no episode yet; call reset() first")
-        return self.worlds.scene_id(0)
-
-    @property
-    def scene_ids(self) -> list[str]:
-        """The scenes of this env's split, in ``scene_index`` order."""
-        return list(self.worlds.bank.scene_ids)
-
-    @property
-    def episode(self):
-        """The current :class:`~plex_ma.envs.sim.Episode` (start, goal, ids), or None before ``reset``."""
-        return self.worlds.sim.episodes[0]
 
     def observation_space(self, agent):
         return self.observation_spaces[agent]

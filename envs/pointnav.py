@@ -33,14 +33,14 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 
-from .rules import InvalidAction, NavConfig, PointNavWorlds, make_config
+from .rules import InvalidAction, NavConfig, OneWorldEnv, PointNavWorlds, make_config
 from .sim.core import NUM_ACTIONS
 from .sim.topdown import topdown_view
 from .spaces import pointnav_observation_space
 from .viewer import HumanViewer
 
 
-class PointNavEnv(gymnasium.Env):
+class PointNavEnv(OneWorldEnv, gymnasium.Env):
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
 
     def __init__(self, render_mode: str | None = None, **config):
@@ -54,23 +54,6 @@ class PointNavEnv(gymnasium.Env):
         self.action_space = gymnasium.spaces.Discrete(NUM_ACTIONS)
         self._path: list[np.ndarray] = []
         self._seeded = False
-
-    @property
-    def scene_id(self) -> str:
-        """The string id of the current episode's scene (``scene_ids[info["scene_index"]]``)."""
-        if self.worlds.sim.episodes[0] is None:
-            raise RuntimeError("no episode yet; call reset() first")
-        return self.worlds.scene_id(0)
-
-    @property
-    def scene_ids(self) -> list[str]:
-        """The scenes of this env's split, in ``scene_index`` order."""
-        return list(self.worlds.bank.scene_ids)
-
-    @property
-    def episode(self):
-        """The current :class:`~plex_ma.envs.sim.Episode`, or None before ``reset``."""
-        return self.worlds.sim.episodes[0]
 
     def _obs(self) -> dict:
         return {k: v[0] for k, v in self.worlds.obs([0]).items()}

@@ -158,6 +158,31 @@ def _wrap(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
+class OneWorldEnv:
+    """The episode and scene properties of an env over one world (``plex_nav_v0``,
+    ``plex_ma/PointNav-v0``); the env sets ``self.worlds``."""
+
+    worlds: "_Worlds"
+
+    @property
+    def scene_id(self) -> str:
+        """The string id of the current episode's scene (an info's ``scene_index`` indexes
+        :attr:`scene_ids`)."""
+        if self.worlds.sim.episodes[0] is None:
+            raise RuntimeError("no episode yet; call reset() first")
+        return self.worlds.scene_id(0)
+
+    @property
+    def scene_ids(self) -> list[str]:
+        """The scenes of this env's split, in ``scene_index`` order."""
+        return list(self.worlds.bank.scene_ids)
+
+    @property
+    def episode(self):
+        """The current :class:`~plex_ma.envs.sim.Episode` (start, goal, ids), or None before ``reset``."""
+        return self.worlds.sim.episodes[0]
+
+
 class _Worlds:
     """Episodes, metrics and infos of N worlds; subclasses add the agents' rules."""
 
