@@ -102,8 +102,8 @@ def _plan(obstacles, explored, d, th, cell, lookahead, nb, line_of_sight):
             return min(d, 1.5), th
         a, b = bx, by
     a0, b0 = a, b
-    walked, first = 0.0, True
-    first_a, first_b = a, b
+    walked = 0.0
+    first_a, first_b = -1, -1  # the path's first cell
     seen_a, seen_b = -1, -1  # the farthest path cell so far in a straight line over seen floor
     while walked < lookahead / cell and dist[a, b] > 0:
         best, bx, by, step = dist[a, b], a, b, 0.0
@@ -115,16 +115,15 @@ def _plan(obstacles, explored, d, th, cell, lookahead, nb, line_of_sight):
             break
         a, b = bx, by
         walked += step
-        if first:
+        if first_a < 0:
             first_a, first_b = a, b
-            first = False
         if line_of_sight:
             if _seen_free_line(obstacles, explored, a0, b0, a, b):
                 seen_a, seen_b = a, b
             else:
                 break
     if line_of_sight:
-        a, b = (seen_a, seen_b) if seen_a >= 0 else (first_a, first_b)
+        a, b = (seen_a, seen_b) if seen_a >= 0 else (first_a, first_b) if first_a >= 0 else (a, b)
     f, l = (s / 2 - a - 0.5) * cell, (s / 2 - b - 0.5) * cell
     return math.hypot(f, l), math.atan2(l, f)
 

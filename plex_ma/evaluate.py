@@ -23,6 +23,7 @@ from plex_ma.envs.rules import PLANNER
 from plex_ma.envs.sim import load_episodes
 from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
+from plex_ma.trainers.driver import PLANNER_KINDS
 from plex_ma.trainers.evaluation import METRICS, episode_set, format_table, load_policies, run_episodes, summarize
 from plex_ma.viz.record import EpisodeRecorder
 
@@ -36,7 +37,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--checkpoint", default=None,
                    help="checkpoint file (e.g. runs/x/latest.pt, or pretrained:plex-gru); not needed when both "
                         "PLEX agents are stand-ins")
-    p.add_argument("--planner", choices=["learned", "oracle", "random", "map", "map-los"], default="learned",
+    p.add_argument("--planner", choices=PLANNER_KINDS, default="learned",
                    help="PLEX planner: the checkpoint's, the shortest-path oracle (ground truth), random, or "
                         "shortest paths on the agent's own ego map (no ground truth)")
     p.add_argument("--executor", choices=["learned", "oracle", "random"], default="learned",

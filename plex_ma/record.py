@@ -27,6 +27,7 @@ from PIL import Image
 from plex_ma.config import DEVICE_HELP, TrainConfig
 from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
+from plex_ma.trainers.driver import PLANNER_KINDS
 from plex_ma.trainers.evaluation import load_policies, run_episodes
 from plex_ma.viz.record import EpisodeRecorder
 
@@ -36,7 +37,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", help="checkpoint file whose networks act (greedily), or pretrained:NAME")
     p.add_argument("--policy", choices=["random"], help="a random planner/executor pair instead of a checkpoint")
-    p.add_argument("--planner", choices=["learned", "oracle", "random", "map", "map-los"], default=None,
+    p.add_argument("--planner", choices=PLANNER_KINDS, default=None,
                    help="PLEX planner (default: the checkpoint's; oracle = ground truth; map = shortest paths on "
                         "the agent's own ego map)")
     p.add_argument("--executor", choices=["learned", "oracle", "random"], default=None,

@@ -21,7 +21,7 @@ import torch
 
 from plex_ma.config import TrainConfig
 from plex_ma.envs.vector import PlexVectorEnv
-from plex_ma.trainers.driver import PlexDriver, make_executor, make_planner
+from plex_ma.trainers.driver import PLANNER_KINDS, PlexDriver, make_executor, make_planner
 from plex_ma.trainers.evaluation import load_policies
 from plex_ma.trainers.plex import env_kwargs
 
@@ -75,7 +75,7 @@ def report(a: np.ndarray) -> str:
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", default=None, help="checkpoint file (or pretrained:NAME)")
-    p.add_argument("--planner", choices=["learned", "oracle", "map", "map-los", "random"], default="learned")
+    p.add_argument("--planner", choices=PLANNER_KINDS, default="learned")
     p.add_argument("--executor", choices=["learned", "oracle", "random"], default="learned")
     p.add_argument("--steps", type=int, default=800, help="executor steps of the 16 worlds")
     a = p.parse_args(argv)

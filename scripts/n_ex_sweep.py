@@ -18,13 +18,14 @@ import dataclasses
 import torch
 
 from plex_ma.config import TrainConfig
+from plex_ma.trainers.driver import PLANNER_KINDS
 from plex_ma.trainers.evaluation import load_policies, run_episodes, summarize
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", default=None, help="a PLEX checkpoint for the learned agents")
-    p.add_argument("--planner", choices=["learned", "oracle", "map", "map-los", "random"], default="learned")
+    p.add_argument("--planner", choices=PLANNER_KINDS, default="learned")
     p.add_argument("--executor", choices=["learned", "oracle", "random"], default="learned")
     p.add_argument("--n-ex", type=int, nargs="+", default=[10, 18])
     p.add_argument("--split", choices=["val", "test"], default="val")

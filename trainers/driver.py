@@ -263,6 +263,10 @@ class PlexDriver:
         return ExecutorStep(obs, starts, out, self.state, res)
 
 
+#: The planner policies :func:`make_planner` builds by name (the ``--planner`` choices of the CLIs).
+PLANNER_KINDS = ("learned", "oracle", "random", "map", "map-los")
+
+
 def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None,
                  teacher: str = "oracle", **random_kw):
     """A planner policy by name: 'learned' (needs ``net``), 'imitating' (the learned one
