@@ -7,8 +7,9 @@ navigation does: cells never seen count as free, observed obstacle cells are blo
 
 - It stops once the goal is nearer than ``stop_distance`` (Euclidean, from the goal
   vector).
-- Otherwise it runs Dijkstra (8-connected, diagonal steps cost sqrt 2) from the goal's
-  cell, or from the point where the straight line to the goal leaves the map when the goal
+- Otherwise it runs Dijkstra (8-connected, diagonal steps cost sqrt 2; a diagonal step
+  passes only where both cells beside it are free, so no path cuts a wall's corner) from
+  the goal's cell, or from the point where the straight line to the goal leaves the map when the goal
   lies beyond it, and sets the sub-goal at the cell ``lookahead`` metres along the shortest
   path from the agent's cell (by steepest descent, so on the grid's 45-degree steps: its
   direction can differ from the goal's by up to about 0.5 rad in open space), or at the
@@ -19,7 +20,8 @@ navigation does: cells never seen count as free, observed obstacle cells are blo
   that path, within ``lookahead``, that a straight line from the agent reaches over cells
   seen as floor and free of obstacles (the first cell of the path when none is): a
   sub-goal a learned executor can walk straight to, never one behind a wall or in space
-  it has not seen.
+  it has not seen. A goal nearer than ``lookahead`` is the sub-goal only when such a line
+  reaches it; otherwise the path is planned as for a far goal.
 
 It is a baseline, a teacher for the learned planner (``--teacher map``) and a diagnostic:
 ``python -m plex_ma.evaluate --planner map --executor oracle``.
@@ -54,6 +56,8 @@ def _distances(blocked, ga, gb, nb):
         for k in range(nb.shape[0]):
             x, y = a + nb[k, 0], b + nb[k, 1]
             if 0 <= x < s and 0 <= y < s and not blocked[x, y]:
+                if k >= 4 and (blocked[a, y] or blocked[x, b]):
+                    continue  # a diagonal step past a blocked cell would cut a wall's corner
                 c = best + (1.4142135623730951 if k >= 4 else 1.0)
                 if c < dist[x, y]:
                     dist[x, y] = c
@@ -75,11 +79,21 @@ def _seen_free_line(obstacles, explored, a0, b0, a1, b1):
 
 
 @njit(cache=True)
+def _cell_of(d, th, cell, s):
+    """The ego-map cell (row, column) of the point ``d`` metres away at bearing ``th``."""
+    a = int(round(s / 2 - d * math.cos(th) / cell - 0.5))
+    b = int(round(s / 2 - d * math.sin(th) / cell - 0.5))
+    return min(max(a, 0), s - 1), min(max(b, 0), s - 1)
+
+
+@njit(cache=True)
 def _plan(obstacles, explored, d, th, cell, lookahead, nb, line_of_sight):
     """(rho, theta) of the sub-goal for one ego map (see the module docstring)."""
     s = obstacles.shape[0]
     if d <= lookahead:
-        return d, th
+        ga, gb = _cell_of(d, th, cell, s)
+        if not line_of_sight or _seen_free_line(obstacles, explored, s // 2, s // 2, ga, gb):
+            return d, th
     fwd, left = d * math.cos(th), d * math.sin(th)
     lim = (s / 2 - 1) * cell
     m = max(abs(fwd), abs(left))
@@ -109,7 +123,8 @@ def _plan(obstacles, explored, d, th, cell, lookahead, nb, line_of_sight):
         best, bx, by, step = dist[a, b], a, b, 0.0
         for k in range(nb.shape[0]):
             x, y = a + nb[k, 0], b + nb[k, 1]
-            if 0 <= x < s and 0 <= y < s and dist[x, y] < best:
+            if (0 <= x < s and 0 <= y < s and dist[x, y] < best
+                    and not (k >= 4 and (blocked[a, y] or blocked[x, b]))):
                 best, bx, by, step = dist[x, y], x, y, (1.4142135623730951 if k >= 4 else 1.0)
         if step == 0.0:
             break

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from plex_ma.envs.map_planner import MapPlanner
+from plex_ma.envs.map_planner import _NEIGHBOURS, MapPlanner, _distances
 from plex_ma.envs.vector import PlexVectorEnv
 from plex_ma.trainers.driver import MapPlannerPolicy, OracleExecutorPolicy, PlexDriver
 
@@ -90,3 +90,30 @@ def test_line_of_sight_sub_goals_stay_on_seen_floor():
     _, los = MapPlanner(line_of_sight=True).decide({"ego_map": ego, "goal": goal})
     _, plain = MapPlanner().decide({"ego_map": ego, "goal": goal})
     assert np.allclose(los, plain), (los, plain)
+
+
+def test_no_path_cuts_a_wall_corner():
+    """Two blocked cells that touch the agent's cell (16, 16) and the goal's cell (15, 17): a
+    diagonal step between those would pass through the corner where the blocked cells meet,
+    so the distance is the way round them (6 orthogonal steps, not sqrt 2: a diagonal step
+    past one blocked cell is refused too)."""
+    blocked = np.zeros((32, 32), np.bool_)
+    blocked[15, 16] = blocked[16, 17] = True  # ahead of the agent, and to its right
+    dist = _distances(blocked, 15, 17, _NEIGHBOURS)
+    assert math.isclose(dist[16, 16], 6.0), dist[16, 16]
+    assert math.isclose(dist[14, 17], 1.0) and math.isclose(dist[14, 16], 2.0)
+
+
+def test_line_of_sight_planner_plans_round_a_wall_to_a_near_goal():
+    """A goal 1.5 m ahead behind a wall, all of it seen: the plain planner sets the goal
+    itself as the sub-goal; map-los plans round the wall and sets a sub-goal it can walk to
+    in a straight line."""
+    ego = np.zeros((1, 2, 32, 32), np.float32)
+    ego[0, 1] = 1.0
+    ego[0, 0, 14, 12:21] = 1.0  # a wall 1 m ahead, 4.5 m wide
+    goal = np.array([[1.5, 0.0]], np.float32)
+    _, plain = MapPlanner().decide({"ego_map": ego, "goal": goal})
+    _, los = MapPlanner(line_of_sight=True).decide({"ego_map": ego, "goal": goal})
+    assert np.allclose(plain[0], (1.5, 0.0), atol=1e-6)
+    assert abs(los[0, 1]) > 0.5, los  # off to one side, towards the wall's end
+    assert ego[0, 0][_cell(los[0])] == 0.0
