@@ -77,7 +77,7 @@ import numba
 import numpy as np
 import torch
 
-import plex_ma.viz.record as vr
+import plex_ma.viz as vr
 from plex_ma.config import DEVICE_HELP, TrainConfig, preset_defaults, validate
 from plex_ma.envs import plex_nav_v0
 from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
@@ -85,7 +85,8 @@ from plex_ma.envs.sim.episodes import sample_episode
 from plex_ma.envs.vector import EXECUTOR, PlexVectorEnv
 from plex_ma.flops import matmul_gflops, model_flops_per_step
 from plex_ma.trainers.device import describe
-from plex_ma.trainers.plex import build_policies, make_trainer
+from plex_ma.trainers import make_trainer
+from plex_ma.trainers.base import build_policies
 
 
 def machine() -> dict:

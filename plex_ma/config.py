@@ -31,8 +31,6 @@ class TrainConfig:
     """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping) or under the shortest-path oracle planner (ground truth)"""
     executor: Literal["learn", "oracle"] = "learn"
     """PLEX only: learn the executor, or train the planner alone over the shortest-path oracle executor (ground truth)"""
-    warmup_planner: Literal["random", "oracle", "learn"] = "random"
-    """PLEX only: the planner during --planner-warmup-steps: random sub-goals, the shortest-path oracle (ground truth), or the learned planner acting without being updated"""
     random_subgoal_distance: float = 2.0
     """largest distance (m) of the random planner's sub-goals (at most rho_max)"""
     random_subgoal_angle: float = 1.0

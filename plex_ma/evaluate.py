@@ -25,7 +25,7 @@ from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
 from plex_ma.trainers.driver import PLANNER_KINDS
 from plex_ma.trainers.evaluation import METRICS, episode_set, format_table, load_policies, run_episodes, summarize
-from plex_ma.viz.record import EpisodeRecorder
+from plex_ma.viz import EpisodeRecorder
 
 __all__ = ["METRICS", "agents_label", "episode_set", "format_table", "load_policies", "main", "run_episodes",
            "summarize"]

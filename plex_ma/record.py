@@ -10,7 +10,7 @@ The episodes are run by :func:`plex_ma.trainers.evaluation.run_episodes` on one 
 the ``--checkpoint``'s networks, or with ``--planner`` / ``--executor`` standing in for either
 PLEX agent (``oracle``: the shortest-path oracles, ground truth; ``random``: random
 sub-goals, STOP with a small probability, and random moves). ``--policy random`` is
-``--planner random --executor random``. Each episode becomes one recording in the file (see ``plex_ma.viz.record``
+``--planner random --executor random``. Each episode becomes one recording in the file (see ``plex_ma.viz``
 for the entity paths). ``--spawn`` also streams the recordings live to a Rerun viewer
 (started if none is running; needs a display).
 """
@@ -29,7 +29,7 @@ from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
 from plex_ma.trainers.driver import PLANNER_KINDS
 from plex_ma.trainers.evaluation import load_policies, run_episodes
-from plex_ma.viz.record import EpisodeRecorder
+from plex_ma.viz import EpisodeRecorder
 
 
 def main(argv: list[str] | None = None) -> list[dict]:

@@ -22,11 +22,10 @@ import json
 import sys
 
 from plex_ma.config import parse
-from plex_ma.trainers import distributed
+from plex_ma.trainers import distributed, make_trainer
 from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
-from plex_ma.trainers.plex import make_trainer
-from plex_ma.viz.record import record_training_episode
+from plex_ma.viz import record_training_episode
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -23,7 +23,7 @@ from plex_ma.config import TrainConfig
 from plex_ma.envs.vector import PlexVectorEnv
 from plex_ma.trainers.driver import PLANNER_KINDS, PlexDriver, make_executor, make_planner
 from plex_ma.trainers.evaluation import load_policies
-from plex_ma.trainers.plex import env_kwargs
+from plex_ma.trainers.base import env_kwargs
 
 DETOUR_RATIO, DETOUR_SLACK = 1.2, 0.05
 

@@ -11,7 +11,7 @@ import torch
 
 from plex_ma.config import parse
 from plex_ma.trainers.device import DeviceError, describe, resolve_device
-from plex_ma.trainers.plex import make_trainer
+from plex_ma.trainers import make_trainer
 
 from .test_train import tiny
 

@@ -16,9 +16,8 @@ import time
 import pytest
 import torch
 
-from plex_ma.trainers import distributed
+from plex_ma.trainers import distributed, make_trainer
 from plex_ma.trainers.checkpoint import load_checkpoint
-from plex_ma.trainers.plex import make_trainer
 from tests.test_train import tiny
 
 # 2 worlds x 16 steps = 32 steps per update

@@ -24,7 +24,7 @@ def test_contracts_kept(tmp_path):
 @pytest.mark.parametrize("module, bad_import, contract", [
     ("envs/sim/core.py", "import plex_ma.envs.rules", "the simulator knows nothing of agents"),
     ("envs/rules.py", "import plex_ma.networks", "plex-ma layers"),
-    ("trainers/ppo.py", "import plex_ma.viz.record", "plex-ma layers"),
+    ("trainers/ppo.py", "import plex_ma.viz.recorder", "plex-ma layers"),
 ])
 def test_an_upward_import_is_caught(tmp_path, module, bad_import, contract):
     staged = lint_imports.stage(tmp_path)

@@ -11,7 +11,7 @@ import torch
 from plex_ma.config import preset_defaults, validate
 from plex_ma.trainers.evaluation import load_policies, run_episodes
 from plex_ma.trainers.checkpoint import CheckpointError, export_pretrained, load_checkpoint, pretrained_names
-from plex_ma.trainers.plex import make_trainer
+from plex_ma.trainers import make_trainer
 
 
 def test_shipped_agents_are_small_and_say_how_they_were_trained():

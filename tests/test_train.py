@@ -13,7 +13,8 @@ import torch
 from plex_ma.config import TrainConfig, parse, preset_defaults, validate
 from plex_ma.evaluate import main as evaluate_main
 from plex_ma.trainers.checkpoint import CheckpointError, atomic_save, find_resumable, load_checkpoint, save_checkpoint
-from plex_ma.trainers.plex import PlexTrainer, make_trainer
+from plex_ma.trainers import make_trainer
+from plex_ma.trainers.plex import PlexTrainer
 
 
 def tiny(tmp_path, **kw) -> TrainConfig:
@@ -309,7 +310,7 @@ def test_torch_threads_hold_after_the_simulator_starts(tmp_path):
 
     code = ("import dataclasses, torch\n"
             "from plex_ma.config import preset_defaults\n"
-            "from plex_ma.trainers.plex import make_trainer\n"
+            "from plex_ma.trainers import make_trainer\n"
             f"cfg = dataclasses.replace(preset_defaults('smoke'), run_dir={str(tmp_path / 'run')!r}, total_steps=32,\n"
             "    num_envs=2, rollout_steps=16, num_scenes=2, torch_threads=1, progress=False)\n"
             "t = make_trainer(cfg)\n"

@@ -1,4 +1,4 @@
-"""Rerun recordings (plex_ma.viz.record): files the rerun CLI verifies, the documented entity
+"""Rerun recordings (plex_ma.viz): files the rerun CLI verifies, the documented entity
 paths, recordings of a random policy, of checkpoints (PLEX and flat) and during training."""
 
 from __future__ import annotations
@@ -19,9 +19,10 @@ from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
 from plex_ma.record import main as record_main
 from plex_ma.trainers.driver import PlexDriver, RandomExecutor, RandomPlanner
 from plex_ma.trainers.checkpoint import atomic_save
-from plex_ma.trainers.plex import CHECKPOINT_FORMAT, build_policies, make_trainer
+from plex_ma.trainers import make_trainer
+from plex_ma.trainers.base import CHECKPOINT_FORMAT, build_policies
 from plex_ma.viz.layout import entity_table_markdown
-from plex_ma.viz.record import (ENTITY_PATHS, EpisodeRecorder, ego_pixel, pca_2d, record_training_episode,
+from plex_ma.viz import (ENTITY_PATHS, EpisodeRecorder, ego_pixel, pca_2d, record_training_episode,
                                 rerun_executable)
 
 WORLD = {p for p in ENTITY_PATHS if p.startswith("world")}

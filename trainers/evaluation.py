@@ -18,7 +18,7 @@ from plex_ma.config import TrainConfig
 
 from .checkpoint import CheckpointError, load_checkpoint
 from .driver import PlexDriver, make_executor, make_planner
-from .plex import build_policies, env_kwargs, saved_config
+from .base import build_policies, env_kwargs, saved_config
 
 METRICS = ("success", "spl", "reward", "distance_to_goal", "collisions")
 

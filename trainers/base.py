@@ -1,0 +1,254 @@
+"""What the PLEX and flat trainers share: the networks of a method, its env settings, and
+the run-dir life of a training run (seeding, devices, optimisers, checkpoints, resume,
+metrics, progress and the time shares of each update).
+
+:class:`Trainer` is the base class; :class:`~plex_ma.trainers.plex.PlexTrainer` and
+:class:`~plex_ma.trainers.flat.FlatTrainer` hold the training loops.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from plex_ma.config import TrainConfig
+from plex_ma.networks import Executor, FlatPolicy, Planner
+
+from . import distributed
+from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from .device import resolve_device
+from .logger import MetricLogger
+from .ppo import PPOConfig
+
+CHECKPOINT_FORMAT = 1
+# Config fields added after checkpoints were first written, with the value older ones had.
+LEGACY_CONFIG = {"executor_goal_skip": False}
+
+
+# The settings that shape the networks: a checkpoint loads only into a run with the same.
+ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_goal_skip")
+
+
+def saved_config(state: dict) -> dict:
+    """A checkpoint's config, with the fields older checkpoints lack filled in."""
+    return {**LEGACY_CONFIG, **state["config"]}
+
+
+def env_kwargs(cfg: TrainConfig, split: str = "train") -> dict:
+    """The env config of a training config (PLEX's env options for the PLEX methods)."""
+    kw = dict(resolution=cfg.resolution, max_steps=cfg.max_steps, scenes=cfg.scenes, split=split)
+    if split == "train":
+        kw["num_scenes"] = cfg.num_scenes
+    if cfg.method.startswith("plex"):
+        kw |= dict(n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, subgoal_radius=cfg.subgoal_radius,
+                   executor_stop_penalty=cfg.executor_stop_penalty)
+    return kw
+
+
+def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
+    """The networks of a method: {'planner', 'executor'} for PLEX, {'policy'} for flat PPO."""
+    memory = cfg.method.split("-")[1]
+    if cfg.method.startswith("plex"):
+        return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max),
+                "executor": Executor(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
+                                     gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip,
+                                     stop_prior=cfg.executor_stop_prior)}
+    return {"policy": FlatPolicy(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
+                                 gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip)}
+
+
+@dataclass
+class EpisodeStats:
+    """Rolling window of finished episodes for logging."""
+
+    window: int = 100
+    success: deque = field(default_factory=lambda: deque(maxlen=100))
+    spl: deque = field(default_factory=lambda: deque(maxlen=100))
+    reward: deque = field(default_factory=lambda: deque(maxlen=100))
+
+    def add(self, info: dict, reward: float) -> None:
+        self.success.append(info["success"])
+        self.spl.append(info["spl"])
+        self.reward.append(reward)
+
+    def summary(self) -> dict:
+        if not self.success:
+            return {}
+        return {"metrics/success": float(np.mean(self.success)), "metrics/spl": float(np.mean(self.spl)),
+                "reward": float(np.mean(self.reward)), "metrics/episodes": len(self.success)}
+
+
+@dataclass
+class RunClock:
+    """A training loop's progress bar, its last logged metrics, when and at which step it
+    started, and the seconds spent so far in each part of an update."""
+
+    bar: object
+    start_time: float
+    start_step: int
+    last_log: dict = field(default_factory=dict)
+    timing: dict = field(default_factory=lambda: {"sim": 0.0, "inference": 0.0, "update": 0.0})
+
+
+class Trainer:
+    """Shared run-dir handling: seeding, logging, checkpoints, resume, progress."""
+
+    def __init__(self, cfg: TrainConfig, log: bool = True, record: Callable[[Trainer], object] | None = None):
+        """``log``: write metrics to the run dir. ``record``: called with the trainer every
+        ``cfg.record_interval`` updates on the main worker (``python -m plex_ma.train``
+        passes :func:`plex_ma.viz.record_training_episode`)."""
+        self.cfg = cfg
+        self.record = record
+        self.dist = distributed.context()  # rank, world size; single-process unless torchrun started a group
+        self._set_threads()
+        torch.manual_seed(cfg.seed)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.device = resolve_device(cfg.device)
+        if self.device.type == "cuda" and self.dist.world_size > 1:  # torchrun: each rank on its LOCAL_RANK GPU
+            self.device = torch.device("cuda", self.dist.local_rank)
+        self.nets = {k: m.to(self.device) for k, m in build_policies(cfg).items()}
+        lrs = {"planner": cfg.planner_lr or cfg.lr}
+        # fused Adam: one kernel over all parameters; a step over the planner's 6M parameters
+        # takes a fifth of the per-tensor loop's time on one thread (`python -m plex_ma.bench adam`)
+        self.opts = {k: torch.optim.Adam(m.parameters(), lr=lrs.get(k, cfg.lr), eps=1e-5, fused=True)
+                     for k, m in self.nets.items()}
+        self.ppo = PPOConfig(clip_coef=cfg.clip, vf_coef=cfg.value_coef, ent_coef=cfg.entropy_coef,
+                             max_grad_norm=cfg.max_grad_norm, update_epochs=cfg.ppo_epochs,
+                             num_minibatches=cfg.num_minibatches)
+        self.step = 0  # environment steps (agent actions) so far
+        self.updates = {k: 0 for k in self.nets}
+        self.stats = EpisodeStats()
+        self.logger = MetricLogger(cfg.run_dir) if log and self.dist.is_main else None  # rank 0 writes
+        self.resumed_from = None
+        found = distributed.find_resumable(cfg.run_dir)  # rank 0 reads, every worker gets it
+        if found is not None:
+            state, path = found
+            self.load_state(state)
+            self.resumed_from = path
+            if self.dist.is_main:
+                print(f"resuming from {path} at step {self.step:,}")
+        elif cfg.checkpoint:
+            self.load_weights(load_checkpoint(cfg.checkpoint))
+            if self.dist.is_main:
+                print(f"fine-tuning the networks of {cfg.checkpoint}")
+        distributed.sync_start(self)  # distributed: rank 0's parameters everywhere, samplers seeded apart
+
+    def _set_threads(self) -> None:
+        """torch's intra-op threads as configured. Called again after the worlds' first
+        reset: the simulator's numba kernels share torch's OpenMP runtime, and starting
+        them sets its thread count to numba's."""
+        if self.cfg.torch_threads:
+            torch.set_num_threads(self.cfg.torch_threads)
+
+    # ---------------------------------------------------------------- checkpoints
+    def state(self) -> dict:
+        return {"format": CHECKPOINT_FORMAT, "config": dataclasses.asdict(self.cfg), "step": self.step,
+                "updates": dict(self.updates),
+                "models": {k: m.state_dict() for k, m in self.nets.items()},
+                "optimizers": {k: o.state_dict() for k, o in self.opts.items()},
+                "torch_rng": torch.get_rng_state(), "sampler_rng": self.gen.get_state(),
+                # actions sampled on a GPU draw from its generator
+                **({"cuda_rng": torch.cuda.get_rng_state(self.device)} if self.device.type == "cuda" else {})}
+
+    def load_weights(self, state: dict, what: str = "the checkpoint") -> None:
+        """The networks' weights from a checkpoint whose architecture settings match this run's."""
+        if state.get("format") != CHECKPOINT_FORMAT:
+            raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}")
+        saved = saved_config(state)
+        planner = state.get("models", {}).get("planner")
+        if isinstance(planner, dict) and "stop_skip.weight" not in planner:
+            raise CheckpointError(f"{what} holds a planner with the linear heads, which plex-ma no longer has")
+        for key in ARCH_KEYS:
+            if saved.get(key) != getattr(self.cfg, key):
+                raise CheckpointError(f"{what} has {key}={saved.get(key)!r} but this run asks for "
+                                      f"{getattr(self.cfg, key)!r}")
+        try:
+            for k, m in self.nets.items():
+                m.load_state_dict(state["models"][k])
+        except (KeyError, RuntimeError, ValueError) as e:
+            raise CheckpointError(f"checkpoint does not match the networks: {e}") from None
+
+    def load_state(self, state: dict) -> None:
+        self.load_weights(state, "the run dir's checkpoint (use another --run-dir)")
+        try:
+            for k, o in self.opts.items():
+                o.load_state_dict(state["optimizers"][k])
+        except (KeyError, RuntimeError, ValueError) as e:
+            raise CheckpointError(f"checkpoint does not match the networks: {e}") from None
+        self.step = int(state["step"])
+        self.updates = {k: int(v) for k, v in state["updates"].items()}
+        torch.set_rng_state(state["torch_rng"])
+        self.gen.set_state(state["sampler_rng"])
+        if "cuda_rng" in state and self.device.type == "cuda":
+            torch.cuda.set_rng_state(state["cuda_rng"], self.device)
+
+    def save(self) -> None:
+        if not self.dist.is_main:
+            return
+        n = sum(self.updates.values())
+        save_checkpoint(self.cfg.run_dir, self.state(), n, keep=self.cfg.keep_checkpoints)
+
+    # ---------------------------------------------------------------- logging
+    def log(self, metrics: dict) -> None:
+        if self.logger is not None:
+            self.logger.log(self.step, {**metrics, **self.stats.summary()})
+
+    def close(self) -> None:
+        if self.logger is not None:
+            self.logger.close()
+
+    def _progress(self):
+        if not self.cfg.progress or not self.dist.is_main:
+            return None
+        return tqdm(total=self.cfg.total_steps, initial=min(self.step, self.cfg.total_steps), unit="step",
+                    dynamic_ncols=True, mininterval=1.0)
+
+    def _postfix(self, bar, sps: float) -> None:
+        if bar is None:
+            return
+        s = self.stats.summary()
+        bar.set_postfix({"sps": f"{sps:.0f}", "success": f"{s.get('metrics/success', 0):.2f}",
+                         "reward": f"{s.get('reward', 0):.2f}"}, refresh=False)
+
+
+    def _loop_start(self) -> RunClock:
+        return RunClock(self._progress(), time.perf_counter(), self.step)
+
+    def _finish(self, clock: RunClock) -> dict:
+        """Final checkpoint; the last logged metrics with the episode statistics."""
+        self.save()
+        if clock.bar is not None:
+            clock.bar.close()
+        return {**clock.last_log, **self.stats.summary()}
+
+    def _end_of_update(self, n_updates: int, metrics: dict, clock: RunClock) -> None:
+        """Throughput and time shares, then logging, checkpoint, recording and progress bar
+        at their intervals (the logged metrics become ``clock.last_log``)."""
+        cfg = self.cfg
+        timing, bar = clock.timing, clock.bar
+        wall = max(time.perf_counter() - clock.start_time, 1e-9)
+        sps = (self.step - clock.start_step) / wall
+        metrics["perf/fps"] = sps
+        # shares of the wall time since the start; "other" is logging, buffers, checkpoints
+        for k, v in timing.items():
+            metrics[f"perf/share_{k}"] = v / wall
+        metrics["perf/share_other"] = max(0.0, 1.0 - sum(timing.values()) / wall)
+        if n_updates % cfg.log_interval == 0:
+            self.log(metrics)
+            clock.last_log = metrics
+        if n_updates % cfg.checkpoint_interval == 0:
+            self.save()
+        if self.record is not None and cfg.record_interval and n_updates % cfg.record_interval == 0 \
+                and self.dist.is_main:
+            self.record(self)
+        if bar is not None:
+            bar.update(min(self.step, cfg.total_steps) - bar.n)
+            self._postfix(bar, sps)
+
