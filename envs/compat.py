@@ -43,7 +43,7 @@ first 4.
 
 An action outside `0..K-1`, one that the mask forbids (an executor action above 3), a
 non-integer, or a step after the episode ended raises
-:class:`~plex_ma.envs.rules.InvalidAction` naming the problem; nothing is changed.
+:class:`~plex_ma.envs.actions.InvalidAction` naming the problem; nothing is changed.
 
 `compat_env()` pickles (it rebuilds from its arguments, like ``EzPickle``).
 
@@ -89,7 +89,6 @@ trainer. ``tests/test_compat.py`` checks every claim of this section.
 from __future__ import annotations
 
 import functools
-import math
 
 import numpy as np
 import supersuit as ss
@@ -97,7 +96,8 @@ from gymnasium import spaces
 from supersuit.utils.base_aec_wrapper import BaseWrapper
 
 from .plex_nav import env as native_env
-from .rules import ELI_DIM, InvalidAction
+from .actions import InvalidAction, discrete
+from .rules import ELI_DIM
 from .sim.core import ACTION_NAMES
 from .spaces import MAX_GOAL_DISTANCE
 
@@ -251,20 +251,9 @@ class ActionMaskWrapper(BaseWrapper):
         k = self.num_actions
         if action is None:
             raise InvalidAction(f"{agent}: action is None but the {agent} is alive; expected an integer in 0..{k - 1}")
-        if isinstance(action, (bool, np.bool_)):
-            raise InvalidAction(f"{agent}: action must be an integer in 0..{k - 1}, got the bool {action!r}")
-        if isinstance(action, (int, np.integer)):
-            a = int(action)
-        elif isinstance(action, np.ndarray) and action.shape in ((), (1,)) and np.issubdtype(action.dtype, np.integer):
-            a = int(action.reshape(()))
-        elif isinstance(action, (float, np.floating)) and not math.isfinite(action):
-            raise InvalidAction(f"{agent}: action must be an integer in 0..{k - 1}, got {action!r}")
-        else:
-            shape = f" of shape {action.shape} and dtype {action.dtype}" if isinstance(action, np.ndarray) else ""
-            raise InvalidAction(f"{agent}: action must be an integer in 0..{k - 1} (Discrete({k})), got "
-                                f"{type(action).__name__}{shape} {action!r}")
-        if not 0 <= a < k:
-            raise InvalidAction(f"{agent}: action {a} is out of range; expected an integer in 0..{k - 1}")
+        if isinstance(action, np.ndarray) and action.shape == (1,):
+            action = action.reshape(())
+        a = int(discrete(action, k, f"{agent}: action", (), integers_only=True))
         if not self._masks[agent][a]:
             raise InvalidAction(f"{agent}: action {a} is masked out; the {agent}'s actions are "
                                 f"0..{int(self._masks[agent].sum()) - 1} ({', '.join(ACTION_NAMES)}); "

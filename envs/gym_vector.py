@@ -31,7 +31,7 @@ the same rules as the single env (:class:`~plex_ma.envs.rules.PointNavWorlds`).
   in ``SyncVectorEnv``; ``episodes`` (a list of :class:`~plex_ma.envs.sim.Episode`, one per
   world reset) starts given episodes.
 * Actions: an integer array of shape (N,) with values in 0..3 (numpy, a list, or a CPU
-  tensor); anything else raises :class:`~plex_ma.envs.rules.InvalidAction` naming the
+  tensor); anything else raises :class:`~plex_ma.envs.actions.InvalidAction` naming the
   problem, before any world moves.
 * ``copy`` (default True): return copies of the image arrays; with ``copy=False`` they are
   the simulator's buffers, overwritten by the next ``step``.
@@ -58,8 +58,9 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .rules import INFO_KEYS, InvalidAction, NavConfig, PointNavWorlds, make_config
-from .sim.core import NUM_ACTIONS
+from .actions import discrete
+from .rules import INFO_KEYS, NavConfig, PointNavWorlds, make_config
+from .sim.core import ACTION_NAMES, NUM_ACTIONS
 from .sim.topdown import topdown_view
 from .spaces import pointnav_observation_space
 
@@ -219,29 +220,7 @@ class PointNavGymVectorEnv(VectorEnv):
                 self._paths[i] = [w.sim.pos[i].copy()]
 
     def _check_actions(self, actions) -> np.ndarray:
-        n = self.num_envs
-        if (isinstance(actions, np.ndarray) and actions.shape == (n,) and actions.dtype.kind in "iu"
-                and 0 <= actions.min() and actions.max() <= 3):
-            return actions  # the common case, checked in full below otherwise
-        what = f"actions must be {n} integers in 0..3 (STOP, FORWARD, LEFT, RIGHT), one per world"
-        if isinstance(actions, (dict, str, bytes)):
-            raise InvalidAction(f"{what}; got a {type(actions).__name__}")
-        try:
-            a = np.asarray(actions)
-        except (TypeError, ValueError, RuntimeError):
-            raise InvalidAction(f"{what}; got {type(actions).__name__}") from None
-        if a.shape != (n,):
-            raise InvalidAction(f"{what}; got an array of shape {a.shape}")
-        if np.issubdtype(a.dtype, np.bool_) or not (np.issubdtype(a.dtype, np.integer)
-                                                     or np.issubdtype(a.dtype, np.floating)):
-            raise InvalidAction(f"{what}; got dtype {a.dtype}")
-        if np.issubdtype(a.dtype, np.floating) and (not np.all(np.isfinite(a)) or np.any(a != np.round(a))):
-            raise InvalidAction(f"{what}; got non-integer values {a.tolist()}")
-        a = a.astype(np.int64)
-        bad = np.flatnonzero((a < 0) | (a > 3))
-        if len(bad):
-            raise InvalidAction(f"{what}; world(s) {bad.tolist()} got {a[bad].tolist()}")
-        return a
+        return discrete(actions, NUM_ACTIONS, "actions", (self.num_envs,), ACTION_NAMES, per="world")
 
     def _obs(self) -> dict:
         w = self.worlds

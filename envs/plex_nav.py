@@ -4,7 +4,6 @@ world, ``env()`` adds PettingZoo's wrappers."""
 
 from __future__ import annotations
 
-import math
 
 import gymnasium
 import numpy as np
@@ -193,6 +192,4 @@ def _unpack(action, agent: str, keys: tuple[str, str]):
         raise InvalidAction(f"{agent}: action {keys[1]!r} is a ragged sequence, expected shape {want}") from None
     if shape_b != want:
         raise InvalidAction(f"{agent}: action {keys[1]!r} has shape {shape_b}, expected {want}")
-    if isinstance(a, (float, np.floating)) and not (math.isfinite(a) and float(a).is_integer()):
-        raise InvalidAction(f"{agent}: action {keys[0]!r} must be an integer, got {a!r}")
     return a, b

@@ -33,8 +33,9 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 
-from .rules import InvalidAction, NavConfig, OneWorldEnv, PointNavWorlds, make_config
-from .sim.core import NUM_ACTIONS
+from .actions import InvalidAction, discrete
+from .rules import NavConfig, OneWorldEnv, PointNavWorlds, make_config
+from .sim.core import ACTION_NAMES, NUM_ACTIONS
 from .sim.topdown import topdown_view
 from .spaces import pointnav_observation_space
 from .viewer import HumanViewer
@@ -73,9 +74,8 @@ class PointNavEnv(OneWorldEnv, gymnasium.Env):
     def step(self, action):
         if self.worlds.done[0]:
             raise InvalidAction("step() called after the episode ended; call reset()")
-        if isinstance(action, (dict, list, tuple, str)) or np.ndim(action) != 0:
-            raise ValueError(f"action must be an integer in 0..3, got {action!r}")
-        rew, term, trunc = self.worlds.step(np.reshape(action, (1,)))
+        a = discrete(action, NUM_ACTIONS, "agent: action", (), ACTION_NAMES)
+        rew, term, trunc = self.worlds.step(a.reshape(1))
         self._path.append(self.worlds.sim.pos[0].copy())
         if self._viewer is not None:
             self._viewer.show(self._frame())

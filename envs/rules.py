@@ -30,8 +30,9 @@ from dataclasses import dataclass, field, fields
 import numba
 import numpy as np
 
+from .actions import InvalidAction, discrete, real
 from .sim import BatchedSim, Episode, Geodesics, scene_bank
-from .sim.core import MOVE_FORWARD, STOP
+from .sim.core import ACTION_NAMES, NUM_ACTIONS, STOP
 from .sim.episodes import default_episode_file, load_episodes, sample_episode
 
 PLANNER, EXECUTOR = 0, 1
@@ -39,10 +40,6 @@ ELI_DIM = 128
 # The keys of every info dict (:meth:`_Worlds.info`), in order.
 INFO_KEYS = ("scene_index", "episode_id", "geodesic_distance", "distance_to_goal", "collisions", "steps",
              "success", "spl")
-
-
-class InvalidAction(ValueError):
-    """An action is malformed; the message names the agent and the problem."""
 
 
 @dataclass
@@ -339,26 +336,23 @@ class PlexWorlds(_Worlds):
     # ------------------------------------------------------------------ validation
     def check_planner_action(self, stop, subgoal, who: str = "planner") -> tuple[np.ndarray, np.ndarray]:
         """Validate batched planner actions: stop (B,) in {0,1}, subgoal (B,2) finite in range."""
-        stop = _int_array(stop, who, "stop")
-        sg = _float_array(subgoal, who, "subgoal", (len(stop), 2))
-        if np.any((stop != 0) & (stop != 1)):
-            raise InvalidAction(f"{who} action 'stop' must be 0 or 1, got {stop.tolist()}")
+        b = np.size(stop)
+        stop = discrete(stop, 2, f"{who}: action 'stop'", (b,))
+        sg = real(subgoal, f"{who}: action 'subgoal'", (b, 2))
         rho, th = sg[:, 0], sg[:, 1]
         if np.any(rho < 0) or np.any(rho > self.cfg.rho_max):
-            raise InvalidAction(f"{who} action 'subgoal' distance must be in [0, {self.cfg.rho_max}], "
+            raise InvalidAction(f"{who}: action 'subgoal' distance must be in [0, {self.cfg.rho_max}], "
                                 f"got {rho.tolist()}")
         if np.any(np.abs(th) > np.pi + 1e-6):
-            raise InvalidAction(f"{who} action 'subgoal' direction must be in [-pi, pi], got {th.tolist()}")
+            raise InvalidAction(f"{who}: action 'subgoal' direction must be in [-pi, pi], got {th.tolist()}")
         return stop, sg
 
     @staticmethod
     def check_executor_action(action, eli, who: str = "executor") -> tuple[np.ndarray, np.ndarray]:
         """Validate batched executor actions: action (B,) in 0..3, eli (B,128) finite."""
-        a = _int_array(action, who, "action")
-        if np.any((a < 0) | (a > 3)):
-            raise InvalidAction(f"{who} action 'action' must be in 0..3 (STOP, FORWARD, LEFT, RIGHT), "
-                                f"got {a.tolist()}")
-        e = _float_array(eli, who, "eli", (len(a), ELI_DIM))
+        b = np.size(action)
+        a = discrete(action, NUM_ACTIONS, f"{who}: action 'action'", (b,), ACTION_NAMES)
+        e = real(eli, f"{who}: action 'eli'", (b, ELI_DIM))
         return a, e
 
     # ------------------------------------------------------------------ stepping
@@ -498,11 +492,7 @@ class PointNavWorlds(_Worlds):
     def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Apply one action per live world. Returns (rewards, terminated, truncated)."""
         cfg = self.cfg
-        a = _int_array(actions, "agent", "action")
-        if a.shape != (self.n,):
-            raise InvalidAction(f"agent: expected {self.n} actions, got shape {a.shape}")
-        if np.any((a < 0) | (a > 3)):
-            raise InvalidAction(f"agent: action must be in 0..3 (STOP, FORWARD, LEFT, RIGHT), got {a.tolist()}")
+        a = discrete(actions, NUM_ACTIONS, "agent: actions", (self.n,), ACTION_NAMES, per="world")
         live = ~self.done
         rows = np.flatnonzero(live)
         rew = np.zeros(self.n, np.float32)
@@ -530,37 +520,9 @@ def _rows_of(x, n: int, tail: tuple, who: str, key: str) -> np.ndarray:
     """``x`` as an array of shape (n, *tail), or InvalidAction naming the problem."""
     a = np.asarray(x)
     if a.dtype == object:
-        raise InvalidAction(f"{who} action {key!r} must be numeric, got {type(x).__name__}")
+        raise InvalidAction(f"{who}: action {key!r} must be numeric, got {type(x).__name__}")
     if a.shape != (n,) + tail:
-        raise InvalidAction(f"{who} action {key!r} has shape {a.shape}, expected {(n,) + tail}")
-    return a
-
-
-def _int_array(x, who: str, key: str) -> np.ndarray:
-    a = np.asarray(x)
-    if a.dtype == object or not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.bool_)
-                                 or np.issubdtype(a.dtype, np.floating)):
-        raise InvalidAction(f"{who} action {key!r} must be an integer, got dtype {a.dtype}")
-    if np.issubdtype(a.dtype, np.floating):
-        if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
-            raise InvalidAction(f"{who} action {key!r} must be a whole number, got {a.tolist()}")
-    return a.astype(np.int64).reshape(-1)
-
-
-def _float_array(x, who: str, key: str, shape) -> np.ndarray:
-    try:
-        a = np.asarray(x)
-        if np.iscomplexobj(a):
-            raise TypeError
-        a = np.asarray(a, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InvalidAction(f"{who} action {key!r} must be real numbers, got {type(x).__name__}"
-                            f"{' of dtype ' + str(x.dtype) if hasattr(x, 'dtype') else ''}") from None
-    if a.shape != tuple(shape):
-        raise InvalidAction(f"{who} action {key!r} has shape {a.shape[1:] if a.ndim else ()}, "
-                            f"expected {tuple(shape)[1:]}")
-    if not np.all(np.isfinite(a)):
-        raise InvalidAction(f"{who} action {key!r} contains NaN or infinite values")
+        raise InvalidAction(f"{who}: action {key!r} has shape {a.shape}, expected {(n,) + tail}")
     return a
 
 

@@ -14,7 +14,7 @@ from gymnasium import spaces
 from pettingzoo.test import api_test, performance_benchmark, render_test, seed_test
 
 from plex_ma.envs import compat, plex_nav_v0
-from plex_ma.envs.rules import InvalidAction
+from plex_ma.envs.actions import InvalidAction
 
 from .env_helpers import SMALL, line_episode, planner_action, state_snapshot, assert_same_state
 

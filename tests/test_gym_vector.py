@@ -19,7 +19,8 @@ from gymnasium.vector.utils import batch_space
 
 import plex_ma  # noqa: F401  (registers the env)
 from plex_ma.envs.gym_vector import PointNavGymVectorEnv
-from plex_ma.envs.rules import INFO_KEYS, InvalidAction
+from plex_ma.envs.actions import InvalidAction
+from plex_ma.envs.rules import INFO_KEYS
 from plex_ma.envs.sim.episodes import load_episodes
 
 from .env_helpers import SMALL, line_episode

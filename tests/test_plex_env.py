@@ -11,7 +11,7 @@ import pytest
 from pettingzoo.test import api_test, performance_benchmark, render_test, seed_test
 
 from plex_ma.envs import plex_nav_v0
-from plex_ma.envs.rules import InvalidAction
+from plex_ma.envs.actions import InvalidAction
 from plex_ma.envs.sim import Episode
 
 from .env_helpers import (SMALL, assert_same_state, drive, executor_action, line_episode, planner_action,
@@ -475,7 +475,7 @@ BAD_PLANNER = {
     "distance too far": ({"stop": 0, "subgoal": [4.5, 0.0]}, r"\[0, 4.0\]"),
     "negative distance": ({"stop": 0, "subgoal": [-0.1, 0.0]}, r"\[0, 4.0\]"),
     "direction out of range": ({"stop": 0, "subgoal": [1.0, 3.5]}, "pi"),
-    "stop out of range": ({"stop": 2, "subgoal": [1.0, 0.0]}, "0 or 1"),
+    "stop out of range": ({"stop": 2, "subgoal": [1.0, 0.0]}, "0..1"),
     "executor's format": ({"action": 1, "eli": Z}, "other agent"),
     "plain int": (1, "expected a dict"),
     "None while alive": (None, "alive"),

@@ -9,7 +9,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import plex_ma  # noqa: F401  registers the env
-from plex_ma.envs.rules import INFO_KEYS, InvalidAction
+from plex_ma.envs.actions import InvalidAction
+from plex_ma.envs.rules import INFO_KEYS
 
 from .env_helpers import SMALL, line_episode
 
@@ -152,8 +153,8 @@ def test_collision_penalty():
 
 
 @pytest.mark.parametrize("action,error,match", [
-    (4, InvalidAction, "0..3"), (-1, InvalidAction, "0..3"), (1.5, InvalidAction, "whole number"),
-    (float("nan"), InvalidAction, "whole number"), (None, InvalidAction, "integer"),
+    (4, InvalidAction, "0..3"), (-1, InvalidAction, "0..3"), (1.5, InvalidAction, "non-integer value 1.5"),
+    (float("nan"), InvalidAction, "non-integer value nan"), (None, InvalidAction, "integer"),
     ({"action": 1}, ValueError, "integer in 0..3"), (np.array([1, 2]), ValueError, "integer in 0..3"),
     ("1", ValueError, "integer in 0..3"),
 ])

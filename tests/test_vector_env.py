@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from plex_ma.envs import plex_nav_v0
-from plex_ma.envs.rules import InvalidAction
+from plex_ma.envs.actions import InvalidAction
 from plex_ma.envs.vector import EXECUTOR, INFO_KEYS, PLANNER, PlexVectorEnv, PointNavVectorEnv
 
 from .env_helpers import SMALL, line_episode
@@ -124,7 +124,7 @@ def test_plex_vector_env_rejects_bad_actions_without_changes():
                 eli=np.zeros((n, 128), np.float32))
     pos = venv.worlds.sim.pos.copy()
     for bad, match in [(dict(good, subgoal=np.tile([np.nan, 0.0], (n, 1))), "NaN"),
-                       (dict(good, stop=np.full(n, 3)), "0 or 1"),
+                       (dict(good, stop=np.full(n, 3)), "0..1"),
                        (dict(good, subgoal=np.zeros((n, 3))), "shape")]:
         with pytest.raises(InvalidAction, match=match):
             venv.step(**bad)
