@@ -269,8 +269,8 @@ def test_phases_teacher_subgoals_then_imitation_then_main(tmp_path):
 def test_plex_learns_to_reach_the_goal(tmp_path):
     """PLEX end to end with the cpu preset's recipe, its phases shortened, in an open room
     (100-step episodes, 8 worlds): 4k steps of executor warm-up under random sub-goals
-    (40-step episodes), 4k under the map planner, 4k of the planner's imitation of the map
-    planner, then both agents learn by PPO. No episode succeeds at first (reward below 0:
+    (40-step episodes), 4k under the preset's teacher (the map-los planner), 4k of the
+    planner's imitation of it, then both agents learn by PPO. No episode succeeds at first (reward below 0:
     slack and collisions); by 20k steps (about a minute of two cores) at least 5% of the
     last 100 training episodes (sampled actions) succeed and their reward is above 2."""
     cfg = dataclasses.replace(
