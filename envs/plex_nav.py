@@ -4,7 +4,6 @@ world, ``env()`` adds PettingZoo's wrappers."""
 
 from __future__ import annotations
 
-
 import gymnasium
 import numpy as np
 from gymnasium.utils import EzPickle
