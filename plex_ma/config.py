@@ -115,6 +115,8 @@ class TrainConfig:
     """the executor's (and flat policy's) heads also read the encoded goal vector beside the memory's output (--no-executor-goal-skip: heads on the 128-d output alone)"""
     executor_stop_prior: float | None = None
     """PLEX only: start the executor's STOP at p = 0.5 this many metres from its sub-goal, rising nearer and vanishing farther (a skip from the sub-goal distance; None: no skip)"""
+    planner_value_iteration: bool = False
+    """PLEX only: the planner also reads a value-iteration module over its ego map (networks.ValueIteration; the paper's planner has none)"""
     executor_hidden: int = 512
     """GRU hidden size of the executor and the flat GRU policy (512 in the paper)"""
     smt_memory: int = 128

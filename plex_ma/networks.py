@@ -82,6 +82,130 @@ def _conv_out_dim(convs: nn.Module, shape: tuple[int, ...]) -> int:
 # --------------------------------------------------------------------------- planner
 
 
+EGO_CELL = 0.5  # m: the ego map's cell size (envs/sim: 32 x 32 cells, the agent at cell (16, 16))
+SUBGOAL_REACH = 2.0  # m: the value-iteration read-out looks for its sub-goal within this distance
+
+
+class ValueIteration(nn.Module):
+    """A planning module over the ego map: a value-iteration network (Tamar et al. 2016),
+    as CMP (Gupta et al. 2017) plans on egocentric maps.
+
+    - A learned cost per cell, ``1 + softplus(conv3x3(ego map))``, started at about 1 on
+      free cells and 97 on cells seen as obstacles (unseen cells count as free).
+    - ``iterations`` Bellman updates of the distance to the goal over 8 neighbours (a
+      diagonal step costs sqrt 2 x the largest cost of the cell and the two cells beside
+      the step, so paths do not cut a wall's corner). The goal is its cell, or, beyond the
+      map, the cell where the straight line to it leaves the map. Gradients flow through
+      the last ``grad_iterations`` updates only: the cost map is local, so that is where it
+      learns, and backpropagating through every update costs 20 times the forward pass.
+    - Read-out (:meth:`forward`): the distance field within ``SUBGOAL_REACH`` of the agent
+      relative to its smallest value there, and a sub-goal: the cell nearest the goal among
+      those the agent reaches within that distance (the goal's exact position stands in for
+      its cell; the agent's own cell is never chosen).
+    """
+
+    def __init__(self, ego_channels: int = 2, map_size: int = 32, iterations: int = 40, grad_iterations: int = 8):
+        super().__init__()
+        self.s, self.iterations, self.grad_iterations = map_size, iterations, grad_iterations
+        self.cost = nn.Conv2d(ego_channels, 1, 3, padding=1)
+        with torch.no_grad():
+            self.cost.weight.zero_()
+            self.cost.weight[0, 0, 1, 1] = 100.0  # channel 0: obstacles
+            self.cost.bias.fill_(-4.0)
+        s, r = map_size, int(SUBGOAL_REACH / EGO_CELL)
+        rows = torch.arange(s, dtype=torch.float32)
+        fwd = (s / 2 - rows - 0.5) * EGO_CELL  # the cell centres' offsets from the agent (m)
+        self.register_buffer("centre_fwd", fwd[:, None].expand(s, s).clone(), persistent=False)
+        self.register_buffer("centre_left", fwd[None, :].expand(s, s).clone(), persistent=False)
+        lo, hi = s // 2 - r, s // 2 + r + 1
+        self.crop = (lo, hi)
+        disc = (self.centre_fwd[lo:hi, lo:hi] ** 2 + self.centre_left[lo:hi, lo:hi] ** 2) <= SUBGOAL_REACH ** 2
+        self.register_buffer("disc", disc, persistent=False)
+        own = torch.zeros_like(disc)
+        own[r, r] = True  # the agent's own cell: never the sub-goal
+        self.register_buffer("own_cell", own[disc], persistent=False)
+        self.out_dim = int(disc.sum()) + 4
+
+    def goal_cell(self, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(row, column, inside) of each goal (B, 2): its cell, or where the straight line to it
+        leaves the map; ``inside`` where the goal itself lies on the map."""
+        s = self.s
+        fwd, left = goal[:, 0] * torch.cos(goal[:, 1]), goal[:, 0] * torch.sin(goal[:, 1])
+        lim = (s / 2 - 1) * EGO_CELL
+        m = torch.maximum(fwd.abs(), left.abs())
+        inside = m <= lim
+        k = torch.where(inside, torch.ones_like(m), lim / m.clamp(min=1e-6))
+        a = torch.floor(s / 2 - fwd * k / EGO_CELL).long().clamp(0, s - 1)
+        b = torch.floor(s / 2 - left * k / EGO_CELL).long().clamp(0, s - 1)
+        return a, b, inside
+
+    def forward(self, ego: torch.Tensor, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(features (B, out_dim), sub-goal (B, 2) = (distance m, direction rad))."""
+        B, s = ego.shape[0], self.s
+        cost = 1.0 + F.softplus(self.cost(ego)[:, 0])
+        a, b, inside = self.goal_cell(goal)
+        at_goal = torch.zeros(B, s, s, dtype=torch.bool, device=ego.device)
+        at_goal[torch.arange(B, device=ego.device), a, b] = True
+        to_goal = bellman(cost, at_goal, self.iterations, self.grad_iterations)
+        # distances from the agent, over the cells near it (its own cell: 0)
+        lo, hi = self.crop
+        m = int(SUBGOAL_REACH / EGO_CELL) + 2
+        near_cost = cost[:, lo - 2:hi + 2, lo - 2:hi + 2]
+        at_agent = torch.zeros_like(near_cost, dtype=torch.bool)
+        at_agent[:, m, m] = True
+        from_agent = bellman(near_cost, at_agent, 2 * m, 2 * m)[:, 2:-2, 2:-2][:, self.disc]
+        d = to_goal[:, lo:hi, lo:hi][:, self.disc]  # (B, cells within reach)
+        # the sub-goal: the cell nearest the goal among those the agent reaches within
+        # SUBGOAL_REACH (cells beyond that reach are penalised, not cut off)
+        score = d + 10.0 * F.relu(from_agent - SUBGOAL_REACH / EGO_CELL) + 1e4 * self.own_cell
+        least = score.min(dim=1, keepdim=True).values
+        fwd = self.centre_fwd[lo:hi, lo:hi][self.disc].expand_as(d)
+        left = self.centre_left[lo:hi, lo:hi][self.disc].expand_as(d)
+        # the goal's own cell stands for the goal's exact position
+        rows, cols = torch.nonzero(self.disc, as_tuple=True)
+        is_goal = (rows[None] + lo == a[:, None]) & (cols[None] + lo == b[:, None]) & inside[:, None]
+        gf, gl = goal[:, :1] * torch.cos(goal[:, 1:]), goal[:, :1] * torch.sin(goal[:, 1:])
+        fwd = torch.where(is_goal, gf.expand_as(fwd), fwd)
+        left = torch.where(is_goal, gl.expand_as(left), left)
+        best = score.argmin(dim=1, keepdim=True)  # ties: the first in row-major order
+        pf, pl = fwd.gather(1, best)[:, 0], left.gather(1, best)[:, 0]
+        rho, theta = torch.hypot(pf, pl), torch.atan2(pl, pf)
+        feats = torch.cat([((score - least) / 8).clamp(max=2.0), (least / 32).clamp(max=2.0), rho[:, None] / SUBGOAL_REACH,
+                           torch.cos(theta)[:, None], torch.sin(theta)[:, None]], dim=1)
+        return feats, torch.stack([rho, theta], dim=1)
+
+
+def bellman(cost: torch.Tensor, sources: torch.Tensor, iterations: int, grad_iterations: int) -> torch.Tensor:
+    """(B, H, W) distances to the nearest ``sources`` cell (B, H, W) bool after ``iterations``
+    Bellman updates over 8 neighbours: a path pays ``cost`` for each of its cells but the
+    source (sqrt 2 x the largest cost of the cell and the two beside the step, for a diagonal
+    step); cells not reached hold 1e4. Gradients flow through the last ``grad_iterations`` updates."""
+    B, h, w = cost.shape
+    big = 1e4
+    cp = F.pad(cost, (1, 1, 1, 1), value=big)
+    sq2 = math.sqrt(2.0)
+    diag = {(da, db): sq2 * torch.maximum(cost, torch.maximum(cp[:, 1 + da:1 + da + h, 1:w + 1],
+                                                             cp[:, 1:h + 1, 1 + db:1 + db + w]))
+            for da in (-1, 1) for db in (-1, 1)}
+    d = torch.where(sources, 0.0, big)
+
+    def update(d):
+        p = F.pad(d, (1, 1, 1, 1), value=big)
+        straight = torch.minimum(torch.minimum(p[:, 0:h, 1:w + 1], p[:, 2:h + 2, 1:w + 1]),
+                                 torch.minimum(p[:, 1:h + 1, 0:w], p[:, 1:h + 1, 2:w + 2]))
+        best = straight + cost
+        for (da, db), cd in diag.items():
+            best = torch.minimum(best, p[:, 1 + da:1 + da + h, 1 + db:1 + db + w] + cd)
+        return torch.where(sources, 0.0, torch.minimum(d, best))
+
+    with torch.no_grad():
+        for _ in range(iterations - grad_iterations):
+            d = update(d)
+    for _ in range(grad_iterations):
+        d = update(d)
+    return d
+
+
 class Planner(nn.Module):
     """Planner: ego map CNN + ELI + goal -> 512 -> (+ goal) -> MLP heads: stop logits,
     Gaussian sub-goal, value.
@@ -119,7 +243,8 @@ class Planner(nn.Module):
 
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
-                 map_size: int = 32, init_std: float = 0.5, prior_distance: float = 1.5, head_hidden: int = 256):
+                 map_size: int = 32, init_std: float = 0.5, prior_distance: float = 1.5, head_hidden: int = 256,
+                 value_iteration: bool = False):
         super().__init__()
         self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
         self.prior_distance = min(prior_distance, rho_max)
@@ -129,7 +254,9 @@ class Planner(nn.Module):
             nn.Flatten(),
         )
         n_flat = _conv_out_dim(self.convs, (ego_channels, map_size, map_size))
-        self.fc = nn.Sequential(layer_init(nn.Linear(n_flat + eli_dim + GOAL_FEATURES, hidden)), nn.ReLU())
+        self.vin = ValueIteration(ego_channels, map_size) if value_iteration else None
+        n_vin = self.vin.out_dim if self.vin is not None else 0
+        self.fc = nn.Sequential(layer_init(nn.Linear(n_flat + eli_dim + GOAL_FEATURES + n_vin, hidden)), nn.ReLU())
         feat = hidden + GOAL_FEATURES
 
         def mlp(out, std):
@@ -146,8 +273,9 @@ class Planner(nn.Module):
             self.stop_skip.bias[1] = STOP_PRIOR_SLOPE * STOP_PRIOR_DISTANCE
         self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
 
-    def features(self, obs: dict) -> torch.Tensor:
-        """(B, hidden + GOAL_FEATURES): the trunk's output and the goal features."""
+    def features(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(B, hidden + GOAL_FEATURES): the trunk's output and the goal features; and the
+        value-iteration module's sub-goal (B, 2) (None without the module)."""
         dev = self.convs[0].weight.device
         ego = _as_tensor(obs["ego_map"], dev, torch.float32)
         goal = planner_goal_features(_as_tensor(obs["goal"], dev, torch.float32))
@@ -157,16 +285,26 @@ class Planner(nn.Module):
             eli = _as_tensor(obs["eli"], dev, torch.float32).detach()
         else:
             eli = torch.zeros(ego.shape[0], self.eli_dim, device=dev)
-        h = self.fc(torch.cat([self.convs(ego), eli, goal], dim=1))
-        return torch.cat([h, goal], dim=1)
+        parts, vin_subgoal = [self.convs(ego), eli, goal], None
+        if self.vin is not None:
+            vin_features, vin_subgoal = self.vin(ego, _as_tensor(obs["goal"], dev, torch.float32))
+            parts.append(vin_features)
+        h = self.fc(torch.cat(parts, dim=1))
+        return torch.cat([h, goal], dim=1), vin_subgoal
 
     def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
         """(stop distribution, sub-goal distribution over raw (rho, theta), value (B,))."""
-        h = self.features(obs)
+        h, vin_subgoal = self.features(obs)
         goal = _as_tensor(obs["goal"], h.device, torch.float32)
         stop = Categorical(logits=self.stop_logits(h) + self.stop_skip(h[:, -GOAL_FEATURES:]))
         prior = torch.stack([goal[:, 0].clamp(max=self.prior_distance), goal[:, 1]], dim=1)
         scale = ((goal[:, :1] - OFFSET_ZERO_DISTANCE) / (OFFSET_FULL_DISTANCE - OFFSET_ZERO_DISTANCE)).clamp(0.0, 1.0)
+        if vin_subgoal is not None:
+            # the value-iteration module's sub-goal, blended into the goal with the same
+            # scale as the offsets (its direction taken the short way round from the goal's)
+            turn = torch.atan2(torch.sin(vin_subgoal[:, 1] - goal[:, 1]), torch.cos(vin_subgoal[:, 1] - goal[:, 1]))
+            vin_prior = torch.stack([vin_subgoal[:, 0], goal[:, 1] + turn], dim=1)
+            prior = prior + scale * (vin_prior - prior)
         mean = self.subgoal_mean(h) * scale + prior
         subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
         return stop, subgoal, self.critic(h).squeeze(-1)

@@ -29,11 +29,12 @@ from .ppo import PPOConfig
 
 CHECKPOINT_FORMAT = 1
 # Config fields added after checkpoints were first written, with the value older ones had.
-LEGACY_CONFIG = {"executor_goal_skip": False}
+LEGACY_CONFIG = {"executor_goal_skip": False, "planner_value_iteration": False}
 
 
 # The settings that shape the networks: a checkpoint loads only into a run with the same.
-ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_goal_skip")
+ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_goal_skip",
+             "planner_value_iteration")
 
 
 def saved_config(state: dict) -> dict:
@@ -56,7 +57,7 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     """The networks of a method: {'planner', 'executor'} for PLEX, {'policy'} for flat PPO."""
     memory = cfg.method.split("-")[1]
     if cfg.method.startswith("plex"):
-        return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max),
+        return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max, value_iteration=cfg.planner_value_iteration),
                 "executor": Executor(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip,
                                      stop_prior=cfg.executor_stop_prior)}

@@ -1,0 +1,102 @@
+"""The planner's value-iteration module: distances against a reference search, its sub-goal
+on synthetic maps, where its gradients go, and the stop-gradient with it in the planner."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from plex_ma.envs.map_planner import _NEIGHBOURS, _distances
+from plex_ma.envs.rules import ELI_DIM
+from plex_ma.networks import Executor, Planner, ValueIteration, bellman
+
+
+def test_bellman_matches_dijkstra_on_a_random_grid():
+    """Unit cost on free cells, a prohibitive one on blocked cells: the distances equal the
+    map planner's Dijkstra (8 neighbours, sqrt 2 diagonals, no corner cutting) wherever it
+    reaches, and exceed any path's length wherever it does not."""
+    rng = np.random.default_rng(0)
+    blocked = rng.random((24, 24)) < 0.3
+    blocked[5, 7] = False
+    ref = _distances(blocked.copy(), 5, 7, _NEIGHBOURS)
+    cost = torch.tensor(np.where(blocked, 1e3, 1.0), dtype=torch.float32)[None]
+    src = torch.zeros(1, 24, 24, dtype=torch.bool)
+    src[0, 5, 7] = True
+    got = bellman(cost, src, iterations=150, grad_iterations=0)[0].numpy()
+    free = np.isfinite(ref)
+    assert free.sum() > 100
+    np.testing.assert_allclose(got[free], ref[free], rtol=1e-5)
+    assert np.all(got[~free] >= 1e3)
+
+
+def _subgoal(obstacles: np.ndarray, goal: tuple[float, float]) -> np.ndarray:
+    ego = torch.zeros(1, 2, 32, 32)
+    ego[0, 0] = torch.as_tensor(obstacles, dtype=torch.float32)
+    with torch.no_grad():
+        _, sub = ValueIteration()(ego, torch.tensor([goal], dtype=torch.float32))
+    return sub[0].numpy()
+
+
+def test_open_map_sub_goal_heads_for_the_goal_within_reach():
+    rho, theta = _subgoal(np.zeros((32, 32)), (10.0, 0.3))
+    assert 1.2 <= rho <= 2.2 and abs(theta - 0.3) < 0.35, (rho, theta)  # octile steps: not exactly the goal's direction
+
+
+def test_near_goal_in_the_open_is_the_sub_goal():
+    assert np.allclose(_subgoal(np.zeros((32, 32)), (1.2, -0.7)), (1.2, -0.7), atol=1e-5)
+
+
+def test_wall_with_a_gap_on_the_right_leads_right_and_its_mirror_left():
+    wall = np.zeros((32, 32))
+    wall[12, :] = 1.0
+    wall[12, 22:24] = 0.0  # a gap 3-4 m to the agent's right (column 0 is on its left)
+    assert _subgoal(wall, (10.0, 0.0))[1] < -0.4
+    assert _subgoal(wall[:, ::-1].copy(), (10.0, 0.0))[1] > 0.4
+
+
+def test_gradients_reach_the_cost_map_through_the_last_updates_only():
+    torch.manual_seed(0)
+    vin = ValueIteration(iterations=40, grad_iterations=8)
+    ego = (torch.rand(4, 2, 32, 32) < 0.2).float()
+    goal = torch.tensor([[6.0, 0.5], [3.0, -2.0], [9.0, 3.0], [1.5, 0.1]])
+    feats, _ = vin(ego, goal)
+    feats.sum().backward()
+    assert vin.cost.weight.grad.abs().sum() > 0
+
+
+def test_stop_gradient_holds_with_the_value_iteration_planner():
+    torch.manual_seed(0)
+    ex = Executor("gru", 64, gru_hidden=64)
+    pl = Planner(channels=(8, 8), hidden=64, value_iteration=True)
+    _, _, eli, _ = ex(ex.example_obs(3), ex.initial_state(3), torch.ones(3, dtype=torch.bool))
+    obs = pl.example_obs(3)
+    obs["eli"] = eli
+    before = {k: v.clone() for k, v in ex.state_dict().items()}
+    out = pl.act(obs)
+    opt = torch.optim.Adam(pl.parameters(), lr=1e-2)
+    log_prob, entropy, value = pl.evaluate_actions(obs, out["stop"], out["subgoal"])
+    (-log_prob.mean() - entropy.mean() + (value - 1).pow(2).mean()).backward()
+    assert all(p.grad is None for p in ex.parameters())
+    assert pl.vin.cost.weight.grad.abs().sum() > 0
+    opt.step()
+    for k, v in ex.state_dict().items():
+        assert torch.equal(v, before[k]), k
+    assert ELI_DIM == eli.shape[1]
+
+
+def test_untrained_value_iteration_planner_follows_its_module():
+    """Far from the goal the untrained planner's mean sub-goal is the module's (the heads
+    start near zero); within 0.2 m of the goal it is the goal."""
+    torch.manual_seed(0)
+    pl = Planner(channels=(8, 8), hidden=64, value_iteration=True)
+    obs = pl.example_obs(1)
+    obs["ego_map"] = torch.zeros(1, 2, 32, 32)
+    obs["ego_map"][0, 0, 12, :] = 1.0
+    obs["ego_map"][0, 0, 12, 22:24] = 0.0
+    obs["goal"] = torch.tensor([[10.0, 0.0]])
+    _, sub, _ = pl(obs)
+    _, module = pl.vin(obs["ego_map"], obs["goal"])
+    assert torch.allclose(sub.mean, module, atol=0.05) and module[0, 1] < -0.4
+    obs["goal"] = torch.tensor([[0.15, 2.0]])
+    _, sub, _ = pl(obs)
+    assert torch.allclose(sub.mean, obs["goal"], atol=1e-5)
