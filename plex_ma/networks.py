@@ -147,13 +147,13 @@ class ValueIteration(nn.Module):
         at_goal = torch.zeros(B, s, s, dtype=torch.bool, device=ego.device)
         at_goal[torch.arange(B, device=ego.device), a, b] = True
         to_goal = bellman(cost, at_goal, self.iterations, self.grad_iterations)
-        # distances from the agent, over the cells near it (its own cell: 0)
+        # distances from the agent over the cells near it (its own cell: 0), a mask only: no gradient
         lo, hi = self.crop
         m = int(SUBGOAL_REACH / EGO_CELL) + 2
         near_cost = cost[:, lo - 2:hi + 2, lo - 2:hi + 2]
         at_agent = torch.zeros_like(near_cost, dtype=torch.bool)
         at_agent[:, m, m] = True
-        from_agent = bellman(near_cost, at_agent, 2 * m, 2 * m)[:, 2:-2, 2:-2][:, self.disc]
+        from_agent = bellman(near_cost.detach(), at_agent, 2 * m, 0)[:, 2:-2, 2:-2][:, self.disc]
         d = to_goal[:, lo:hi, lo:hi][:, self.disc]  # (B, cells within reach)
         # the sub-goal: the cell nearest the goal among those the agent reaches within
         # SUBGOAL_REACH (cells beyond that reach are penalised, not cut off)
