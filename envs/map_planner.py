@@ -38,6 +38,13 @@ _NEIGHBOURS = np.array([(-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1,
 
 
 @njit(cache=True)
+def _cuts_corner(blocked, a, b, x, y, k):
+    """True if step ``k`` of ``_NEIGHBOURS`` from cell (a, b) to (x, y) is diagonal and passes
+    a blocked cell beside it (it would cut a wall's corner)."""
+    return k >= 4 and (blocked[a, y] or blocked[x, b])
+
+
+@njit(cache=True)
 def _distances(blocked, ga, gb, nb):
     """Dijkstra distances (in cells) from cell (ga, gb) over the free cells of ``blocked``."""
     s = blocked.shape[0]
@@ -56,8 +63,8 @@ def _distances(blocked, ga, gb, nb):
         for k in range(nb.shape[0]):
             x, y = a + nb[k, 0], b + nb[k, 1]
             if 0 <= x < s and 0 <= y < s and not blocked[x, y]:
-                if k >= 4 and (blocked[a, y] or blocked[x, b]):
-                    continue  # a diagonal step past a blocked cell would cut a wall's corner
+                if _cuts_corner(blocked, a, b, x, y, k):
+                    continue
                 c = best + (1.4142135623730951 if k >= 4 else 1.0)
                 if c < dist[x, y]:
                     dist[x, y] = c
@@ -124,7 +131,7 @@ def _plan(obstacles, explored, d, th, cell, lookahead, nb, line_of_sight):
         for k in range(nb.shape[0]):
             x, y = a + nb[k, 0], b + nb[k, 1]
             if (0 <= x < s and 0 <= y < s and dist[x, y] < best
-                    and not (k >= 4 and (blocked[a, y] or blocked[x, b]))):
+                    and not _cuts_corner(blocked, a, b, x, y, k)):
                 best, bx, by, step = dist[x, y], x, y, (1.4142135623730951 if k >= 4 else 1.0)
         if step == 0.0:
             break

@@ -166,13 +166,16 @@ PRESETS: dict[str, dict] = {
     # beside it (by PPO alone, the planner's updates grew to approx_kl 0.1-0.25 and success
     # fell). map-los plans on the agent's own ego map and sets each sub-goal where a straight
     # line over seen floor reaches it (a learned executor rarely reaches one behind a wall):
-    # no ground truth enters training beyond the reward. 1,024,000 steps: a seed-0 run to 2M
-    # read no higher on procgen test at its end than at 1,024,000 (docs/results.md).
+    # no ground truth enters training beyond the reward. The planner also reads a
+    # value-iteration module over its ego map (networks.ValueIteration): with the paper's
+    # convolutional trunk alone it imitated the teacher's long routes poorly (procgen test
+    # 0.634 / 0.730 / 0.714 for seeds 0-2, 0.18-0.30 on the 174 episodes over 12 m), with it
+    # 0.873 / 0.887 for seeds 0 / 1 (0.75 / 0.76 over 12 m; docs/results.md). 1,024,000 steps.
     "cpu": dict(total_steps=1_024_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=8, n_ex=18, torch_threads=1,
                 executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_warmup_steps=40_000,
                 warmup_scenes="open-room", random_subgoal_distance=1.5, random_subgoal_angle=3.14,
                 executor_stop_penalty=-0.5, subgoal_radius=0.2, executor_stop_prior=0.15, teacher="map-los",
-                teacher_subgoal_steps=260_000, planner_imitation_steps=724_000),
+                teacher_subgoal_steps=260_000, planner_imitation_steps=724_000, planner_value_iteration=True),
     # The paper's settings: 256 px images, N_PL = 128, 30M steps.
     "paper": dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128),
 }

@@ -19,7 +19,6 @@ from pathlib import Path
 import torch
 
 from plex_ma.config import DEVICE_HELP, TrainConfig
-from plex_ma.envs.rules import PLANNER
 from plex_ma.envs.sim import load_episodes
 from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device

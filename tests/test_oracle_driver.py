@@ -62,7 +62,7 @@ def test_driver_matches_the_aec_env():
     acted = {"planner": 0, "executor": 0}
 
     def check_planner(d):
-        obs, rew = aec.observe("planner"), aec._cumulative_rewards["planner"]
+        obs = aec.observe("planner")
         for k, v in d.obs.items():
             np.testing.assert_allclose(obs[k], v[0], atol=1e-6)
         aec.step({"stop": int(d.out["stop"][0]), "subgoal": d.out["subgoal"][0]})

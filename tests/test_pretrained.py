@@ -56,3 +56,14 @@ def test_export_round_trip(tmp_path):
     assert back["command"] == "cmd" and back["notes"] == {"note": 1}
     for k, v in st["models"]["policy"].items():
         torch.testing.assert_close(back["models"]["policy"][k], v, atol=1e-2, rtol=1e-2)
+
+
+def test_planner_architecture_must_match_to_fine_tune(tmp_path):
+    """The shipped PLEX-GRU's planner has the value-iteration module: a run without it
+    refuses the weights, naming the setting."""
+    assert load_checkpoint("pretrained:plex-gru")["config"]["planner_value_iteration"] is True
+    cfg = dataclasses.replace(preset_defaults("cpu"), run_dir=str(tmp_path / "ft"), total_steps=64, num_envs=2,
+                              rollout_steps=16, progress=False, record_interval=0, checkpoint="pretrained:plex-gru",
+                              planner_value_iteration=False)
+    with pytest.raises(CheckpointError, match="planner_value_iteration"):
+        make_trainer(validate(cfg))

@@ -33,8 +33,8 @@ LEGACY_CONFIG = {"executor_goal_skip": False, "planner_value_iteration": False}
 
 
 # The settings that shape the networks: a checkpoint loads only into a run with the same.
-ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_goal_skip",
-             "planner_value_iteration")
+ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_goal_skip")
+PLEX_ARCH_KEYS = ("planner_value_iteration",)  # ... and for the PLEX methods (the planner's)
 
 
 def saved_config(state: dict) -> dict:
@@ -166,7 +166,7 @@ class Trainer:
         planner = state.get("models", {}).get("planner")
         if isinstance(planner, dict) and "stop_skip.weight" not in planner:
             raise CheckpointError(f"{what} holds a planner with the linear heads, which plex-ma no longer has")
-        for key in ARCH_KEYS:
+        for key in ARCH_KEYS + (PLEX_ARCH_KEYS if self.cfg.method.startswith("plex") else ()):
             if saved.get(key) != getattr(self.cfg, key):
                 raise CheckpointError(f"{what} has {key}={saved.get(key)!r} but this run asks for "
                                       f"{getattr(self.cfg, key)!r}")
