@@ -31,7 +31,7 @@ from torch.nn import functional as F
 from torch.distributions import Categorical, Normal
 
 from plex_ma.envs.rules import ELI_DIM
-from plex_ma.envs.sim.core import NUM_ACTIONS, STOP
+from plex_ma.envs.sim.core import NUM_ACTIONS, STOP, BatchedSim
 
 # float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
 # `|theta| <= pi` range check; clamp to the float32 just below pi instead.
@@ -82,7 +82,7 @@ def _conv_out_dim(convs: nn.Module, shape: tuple[int, ...]) -> int:
 # --------------------------------------------------------------------------- planner
 
 
-EGO_CELL = 0.5  # m: the ego map's cell size (envs/sim: 32 x 32 cells, the agent at cell (16, 16))
+EGO_CELL = BatchedSim.ego_cell  # m: the ego map's cell size (32 x 32 cells, the agent at cell (16, 16))
 SUBGOAL_REACH = 2.0  # m: the value-iteration read-out looks for its sub-goal within this distance
 
 
@@ -113,6 +113,7 @@ class ValueIteration(nn.Module):
             self.cost.weight[0, 0, 1, 1] = 100.0  # channel 0: obstacles
             self.cost.bias.fill_(-4.0)
         s, r = map_size, int(SUBGOAL_REACH / EGO_CELL)
+        self.reach_cells = r
         rows = torch.arange(s, dtype=torch.float32)
         fwd = (s / 2 - rows - 0.5) * EGO_CELL  # the cell centres' offsets from the agent (m)
         self.register_buffer("centre_fwd", fwd[:, None].expand(s, s).clone(), persistent=False)
@@ -149,11 +150,12 @@ class ValueIteration(nn.Module):
         to_goal = bellman(cost, at_goal, self.iterations, self.grad_iterations)
         # distances from the agent over the cells near it (its own cell: 0), a mask only: no gradient
         lo, hi = self.crop
-        m = int(SUBGOAL_REACH / EGO_CELL) + 2
-        near_cost = cost[:, lo - 2:hi + 2, lo - 2:hi + 2]
+        pad = 2  # cells round the reach that paths from the agent may pass through
+        near_cost = cost[:, lo - pad:hi + pad, lo - pad:hi + pad].detach()
         at_agent = torch.zeros_like(near_cost, dtype=torch.bool)
-        at_agent[:, m, m] = True
-        from_agent = bellman(near_cost.detach(), at_agent, 2 * m, 0)[:, 2:-2, 2:-2][:, self.disc]
+        at_agent[:, self.reach_cells + pad, self.reach_cells + pad] = True
+        from_agent = bellman(near_cost, at_agent, 2 * (self.reach_cells + pad), 0)
+        from_agent = from_agent[:, pad:-pad, pad:-pad][:, self.disc]
         d = to_goal[:, lo:hi, lo:hi][:, self.disc]  # (B, cells within reach)
         # the sub-goal: the cell nearest the goal among those the agent reaches within
         # SUBGOAL_REACH (cells beyond that reach are penalised, not cut off)
