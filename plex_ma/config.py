@@ -170,7 +170,7 @@ PRESETS: dict[str, dict] = {
     # value-iteration module over its ego map (networks.ValueIteration): with the paper's
     # convolutional trunk alone it imitated the teacher's long routes poorly (procgen test
     # 0.634 / 0.730 / 0.714 for seeds 0-2, 0.18-0.30 on the 174 episodes over 12 m), with it
-    # 0.873 / 0.887 for seeds 0 / 1 (0.75 / 0.76 over 12 m; docs/results.md). 1,024,000 steps.
+    # 0.873 / 0.887 / 0.890 for seeds 0-2 (0.75-0.77 over 12 m; docs/results.md). 1,024,000 steps.
     "cpu": dict(total_steps=1_024_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=8, n_ex=18, torch_threads=1,
                 executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_warmup_steps=40_000,
                 warmup_scenes="open-room", random_subgoal_distance=1.5, random_subgoal_angle=3.14,
