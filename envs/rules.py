@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 
 import numba
 import numpy as np
@@ -44,19 +44,20 @@ INFO_KEYS = ("scene_index", "episode_id", "geodesic_distance", "distance_to_goal
 
 @dataclass
 class NavConfig:
-    """Settings shared by the PLEX and the flat PointNav environments."""
+    """Settings shared by the PLEX and the flat PointNav environments (each field's comment is
+    its help text, and trainers expose every field as a command-line flag)."""
 
     resolution: int = 128  # square RGB-D image size in pixels
-    max_steps: int = 500  # agent (executor) actions before the episode truncates
-    scenes: str = "procgen"  # scene source: "procgen", "r2v", or a directory of plans
-    split: str = "train"  # "train", "val" or "test"
-    num_scenes: int | None = None  # scenes in the split (None: the source's default)
-    episodes_file: str | None = None  # fixed episodes to cycle through (default for val/test)
-    pose_noise: tuple[float, float] = (0.0, 0.0)  # GPS+compass noise std: (metres, radians)
-    slack_reward: float = -0.01  # added on every agent action
-    collision_reward: float = -0.01  # added when a move is blocked
-    success_reward: float = 10.0  # added when the episode ends by a successful stop
-    success_distance: float = 0.2  # geodesic distance (m) under which a stop succeeds
+    max_steps: int = 500  # agent (executor) actions per episode before it truncates
+    scenes: str = "procgen"  # scene source: procgen, r2v, open-room, procgen+r2v, or a directory of floor plans
+    split: str = "train"  # scene split: train, val or test
+    num_scenes: int | None = None  # scenes in the split (None: the source's default, 72 for procgen train)
+    episodes_file: str | None = None  # fixed episodes to cycle through (None: sampled for train, the split's file for val and test)
+    pose_noise: tuple[float, float] = (0.0, 0.0)  # GPS+compass noise std: metres, radians
+    slack_reward: float = -0.01  # reward added on every agent action
+    collision_reward: float = -0.01  # reward added when a move is blocked
+    success_reward: float = 10.0  # reward added when the episode ends by a successful stop
+    success_distance: float = 0.2  # geodesic distance (m) to the goal under which a stop succeeds
 
     def validate(self) -> None:
         def bad(name, why):
@@ -88,16 +89,16 @@ class NavConfig:
 
 @dataclass
 class PlexConfig(NavConfig):
-    """Settings of the PLEX two-agent environment (``plex_nav_v0``)."""
+    """Settings of the PLEX two-agent environment (``plex_nav_v0``); the fields below NavConfig's
+    do not apply to the flat PointNav environment."""
 
-    n_ex: int = 10  # executor actions per turn at most (N_EX)
+    n_ex: int = 10  # executor actions per planner decision at most (N_EX)
     rho_max: float = 4.0  # largest sub-goal distance (m)
-    eli: bool = True  # pass the ELI to the planner (False: the ablation, zeros)
-    subgoal_reward: float = 1.0  # executor bonus for STOP within subgoal_radius
-    subgoal_radius: float = 0.5  # metres
-    executor_stop_penalty: float = 0.0  # added to the executor's reward for a STOP farther than subgoal_radius
-    executor_memory_restart: bool = True  # hint to trainers: reset executor memory per sub-goal
-    eli_dim: int = field(default=ELI_DIM, init=False)
+    eli: bool = True  # pass the executor's ELI to the planner (--no-eli: zeros, the paper's ablation)
+    subgoal_reward: float = 1.0  # executor reward for a STOP within subgoal_radius of its sub-goal
+    subgoal_radius: float = 0.5  # distance (m) to its sub-goal within which the executor's STOP earns subgoal_reward
+    executor_stop_penalty: float = 0.0  # executor reward for a STOP farther than subgoal_radius from its sub-goal (<= 0)
+    executor_memory_restart: bool = True  # hint to trainers: restart the executor's memory with each sub-goal
 
     def validate(self) -> None:
         super().validate()

@@ -78,7 +78,7 @@ import numpy as np
 import torch
 
 import plex_ma.viz as vr
-from plex_ma.config import DEVICE_HELP, TrainConfig, preset_defaults, validate
+from plex_ma.config import DEVICE_HELP, ENV_FIELDS, TrainConfig, preset_defaults, replace, validate
 from plex_ma.envs import plex_nav_v0
 from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
 from plex_ma.envs.sim.episodes import sample_episode
@@ -427,11 +427,11 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
         over["num_envs"] = num_envs
     if resolution:
         over["resolution"] = resolution
-    fields = {f.name: f for f in dataclasses.fields(cfg)}
+    fields = ({f.name for f in dataclasses.fields(cfg)} - {"env"}) | ENV_FIELDS
     for key, text in (overrides or {}).items():
         if key not in fields:
-            raise ValueError(f"--set: TrainConfig has no field {key!r}")
-        current = getattr(cfg, key)
+            raise ValueError(f"--set: TrainConfig and its env have no field {key!r}")
+        current = getattr(cfg.env if key in ENV_FIELDS else cfg, key)
         if isinstance(current, bool):
             if text.lower() not in ("true", "false", "1", "0"):
                 raise ValueError(f"--set {key}: expected true or false, got {text!r}")
@@ -444,7 +444,7 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
         else:
             over[key] = text
     with tempfile.TemporaryDirectory() as d:
-        cfg = validate(dataclasses.replace(cfg, run_dir=d, **over))
+        cfg = validate(replace(cfg, run_dir=d, **over))
         trainer = make_trainer(cfg, log=True)
         result = trainer.train()
         trainer.close()
@@ -460,7 +460,7 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
     update_flops = 3 * cfg.ppo_epochs * (n_worker * flops[worker] + n_planner * flops.get("planner", 0.0))
     achieved = update_flops / max(update_s, 1e-9) / 1e9
     return {"benchmark": "train", "method": method, "preset": preset, "num_envs": cfg.num_envs,
-            "resolution": cfg.resolution, "steps": steps, "steps_per_second": result["perf/fps"],
+            "resolution": cfg.env.resolution, "steps": steps, "steps_per_second": result["perf/fps"],
             "share_sim": result["perf/share_sim"], "share_inference": result["perf/share_inference"],
             "share_update": result["perf/share_update"], "share_other": result["perf/share_other"],
             "model_flops_per_step": flops,

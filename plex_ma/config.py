@@ -1,18 +1,26 @@
 """Training configuration: one dataclass, every field documented, parsed by tyro.
 
-``--preset`` picks a set of defaults (``smoke``, ``cpu``, ``paper``); any flag given on the
-command line overrides the preset's value.
+``TrainConfig`` holds the trainer's settings and nests the environment's own config
+(:class:`plex_ma.envs.rules.PlexConfig`) as ``env``: every env setting (image size, episode
+length, scenes, N_EX, rho_max, the ELI, reward weights, pose noise) is a flag of the same
+name, defined and validated once, by the env. ``--preset`` picks a set of defaults
+(``smoke``, ``cpu``, ``paper``); any flag given on the command line overrides the preset's
+value. :func:`replace` changes fields of either level by name.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-from dataclasses import dataclass
-from typing import Literal
+from dataclasses import dataclass, field
+from typing import Annotated, Literal
 
 import tyro
 
+from plex_ma.envs.rules import PlexConfig, make_config
+
+# Where the trainer's env defaults differ from the env's own.
+TRAIN_ENV = {"resolution": 64}
 Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt"]
 Preset = Literal["smoke", "cpu", "paper"]
 # --device of the CLIs that load networks (evaluate, record, bench train; train has the field below)
@@ -25,8 +33,6 @@ class TrainConfig:
 
     method: Method = "plex-gru"
     """plex-gru / plex-smt (the paper's PLEX LSTM / SMT) or the flat baselines ppo-gru / ppo-smt"""
-    eli: bool = True
-    """pass the executor's ELI to the planner (--no-eli: the paper's ablation)"""
     planner: Literal["learn", "random", "oracle"] = "learn"
     """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping) or under the shortest-path oracle planner (ground truth)"""
     executor: Literal["learn", "oracle"] = "learn"
@@ -55,18 +61,12 @@ class TrainConfig:
     """environment steps (agent actions) to train for"""
     num_envs: int = 16
     """worlds simulated in parallel"""
-    resolution: int = 64
-    """RGB-D image size in pixels (square)"""
     seed: int = 0
     """seeds the worlds, the networks and the sampling"""
     run_dir: str = "runs/plex-gru"
     """where metrics, TensorBoard logs and checkpoints go; an existing checkpoint here is resumed"""
     checkpoint: str | None = None
     """start the networks from this checkpoint's weights (a file or pretrained:NAME) and fine-tune them with fresh optimisers from step 0; a checkpoint in --run-dir is resumed instead"""
-    scenes: str = "procgen"
-    """scene source: procgen, r2v, or a directory of floor plans"""
-    num_scenes: int | None = None
-    """training scenes (None: the source's default, 72 for procgen)"""
     lr: float = 2.5e-4
     """Adam learning rate (both agents)"""
     planner_lr: float | None = None
@@ -75,8 +75,6 @@ class TrainConfig:
     """executor (or flat agent) steps per world between its PPO updates"""
     n_pl: int = 128
     """planner decisions per world per planner update (N_PL)"""
-    n_ex: int = 10
-    """executor actions per planner decision at most (N_EX)"""
     gamma_ex: float = 0.9
     """executor discount per executor step"""
     gamma_pl: float = 0.95
@@ -99,14 +97,6 @@ class TrainConfig:
     """value loss weight"""
     max_grad_norm: float = 0.5
     """gradient clipping norm"""
-    max_steps: int = 500
-    """agent actions per episode before truncation"""
-    rho_max: float = 4.0
-    """largest sub-goal distance (m)"""
-    subgoal_radius: float = 0.5
-    """PLEX only: the executor's STOP earns its +1 within this distance (m) of the sub-goal (the env's subgoal_radius)"""
-    executor_stop_penalty: float = 0.0
-    """PLEX only: added to the executor's reward when it chooses STOP farther than subgoal_radius from its sub-goal (the env's executor_stop_penalty)"""
     planner_target_kl: float | None = None
     """PLEX only: stop the epochs of a planner update early once its approx_kl exceeds this (CleanRL's target_kl; None: all epochs)"""
     planner_minibatches: int = 2
@@ -137,6 +127,31 @@ class TrainConfig:
     """show a progress bar"""
     dist_timeout: float = 300.0
     """distributed runs (torchrun): seconds a worker waits for the others (start-up, each all-reduce) before it stops with an error"""
+    env: Annotated[PlexConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=lambda: PlexConfig(**TRAIN_ENV))
+    """the training worlds' settings (the flat methods use those PointNav shares; evaluation changes the split)"""
+
+
+# The env's fields, set by name beside the trainer's (the two sets of names are disjoint).
+ENV_FIELDS = frozenset(f.name for f in dataclasses.fields(PlexConfig) if f.init)
+assert not ENV_FIELDS & {f.name for f in dataclasses.fields(TrainConfig)}
+
+
+def replace(cfg: TrainConfig, **changes) -> TrainConfig:
+    """``cfg`` with fields changed, the trainer's and the env's alike by their names."""
+    env = {k: changes.pop(k) for k in list(changes) if k in ENV_FIELDS}
+    if env:
+        changes["env"] = dataclasses.replace(changes.get("env", cfg.env), **env)
+    return dataclasses.replace(cfg, **changes)
+
+
+def from_dict(d: dict) -> TrainConfig:
+    """The TrainConfig of a saved dict (a checkpoint's ``config``). The env's fields may sit
+    in ``d["env"]`` or, in a flat config, at the top level; keys neither level knows are
+    ignored."""
+    known = {f.name for f in dataclasses.fields(TrainConfig)} - {"env"}
+    env = {k: v for k, v in d.items() if k in ENV_FIELDS} | dict(d.get("env") or {})
+    env = TRAIN_ENV | {k: v for k, v in env.items() if k in ENV_FIELDS}
+    return TrainConfig(**{k: v for k, v in d.items() if k in known}, env=make_config(PlexConfig, env))
 
 
 PRESETS: dict[str, dict] = {
@@ -185,27 +200,29 @@ def preset_defaults(preset: str, method: str = "plex-gru") -> TrainConfig:
     """A TrainConfig holding a preset's values (and a run dir named after the method)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
-    cfg = dataclasses.replace(TrainConfig(), preset=preset, method=method, **PRESETS[preset])
+    cfg = replace(TrainConfig(), preset=preset, method=method, **PRESETS[preset])
     cfg.run_dir = f"runs/{method}-{preset}"
     return cfg
 
 
 def validate(cfg: TrainConfig) -> TrainConfig:
     """Raise ValueError naming the first bad field."""
-    def need(cond, field, why):
+    def need(cond, name, why):
         if not cond:
-            raise ValueError(f"config --{field.replace('_', '-')}={getattr(cfg, field)!r}: {why}")
+            value = getattr(cfg.env if name in ENV_FIELDS else cfg, name)
+            raise ValueError(f"config --{name.replace('_', '-')}={value!r}: {why}")
+
+    cfg.env.validate()  # the env's fields, by the env's own rules
 
     need(cfg.method in ("plex-gru", "plex-smt", "ppo-gru", "ppo-smt"), "method", "unknown method")
     need(cfg.total_steps > 0, "total_steps", "must be positive")
     need(cfg.num_envs >= 1, "num_envs", "must be >= 1")
-    need(cfg.resolution in range(40, 1025), "resolution", "must be in [40, 1024] (the executor's CNN needs 40 px)")
+    need(cfg.env.resolution >= 40, "resolution", "must be >= 40 to train: the executor's CNN needs 40 px")
     need(cfg.executor_hidden >= 8, "executor_hidden", "must be >= 8")
     need(cfg.lr > 0, "lr", "must be positive")
     need(cfg.planner_lr is None or cfg.planner_lr > 0, "planner_lr", "must be positive")
     need(cfg.rollout_steps >= 2, "rollout_steps", "must be >= 2")
     need(cfg.n_pl >= 1, "n_pl", "must be >= 1")
-    need(cfg.n_ex >= 1, "n_ex", "must be >= 1")
     for g in ("gamma_ex", "gamma_pl", "gamma_flat", "gae_lambda"):
         need(0.0 <= getattr(cfg, g) <= 1.0, g, "must be in [0, 1]")
     need(cfg.ppo_epochs >= 1, "ppo_epochs", "must be >= 1")
@@ -222,7 +239,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
          "with --executor oracle the planner must learn (nothing would be trained)")
     need(cfg.planner_minibatches >= 1, "planner_minibatches", "must be >= 1")
     need(cfg.planner_target_kl is None or cfg.planner_target_kl > 0, "planner_target_kl", "must be positive")
-    need(cfg.executor_stop_penalty <= 0, "executor_stop_penalty", "must be <= 0")
     need(cfg.executor_stop_prior is None or 0 < cfg.executor_stop_prior <= 2, "executor_stop_prior",
          "must be in (0, 2] metres")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
@@ -235,10 +251,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.imitation_minibatches >= 1, "imitation_minibatches", "must be >= 1")
     need(not (cfg.teacher_subgoal_steps and cfg.executor != "learn"), "teacher_subgoal_steps",
          "trains the executor: needs --executor learn")
-    need(0 < cfg.subgoal_radius < 5, "subgoal_radius", "must be in (0, 5) metres")
     need(cfg.planner_entropy_coef is None or cfg.planner_entropy_coef >= 0, "planner_entropy_coef", "must be >= 0")
-    need(cfg.rho_max > 0.5, "rho_max", "must be above 0.5 m")
-    need(0.5 < cfg.random_subgoal_distance <= cfg.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
+    need(0.5 < cfg.random_subgoal_distance <= cfg.env.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")
     need(cfg.device in ("auto", "cpu", "cuda") or cfg.device.startswith("cuda:"), "device",
          "must be auto, cpu, cuda or cuda:N")

@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> dict:
     summary = summarize(results)
     agents = agents_label(cfg, a.planner, a.executor)
     mode = "sampled" if a.sample else "greedy"
-    print(format_table(summary, f"{agents} on {a.scenes or cfg.scenes}/{a.split}, {mode} "
+    print(format_table(summary, f"{agents} on {a.scenes or cfg.env.scenes}/{a.split}, {mode} "
                                 f"({a.checkpoint or 'no checkpoint'})"))
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> dict:
                                             "planner": a.planner, "executor": a.executor,
                                             "ground_truth": "oracle" in (a.planner, a.executor), "mode": mode,
                                             "seed": a.seed, "checkpoint": str(a.checkpoint),
-                                            "split": a.split, "scenes": a.scenes or cfg.scenes,
+                                            "split": a.split, "scenes": a.scenes or cfg.env.scenes,
                                             "per_episode": results}, indent=1))
     return summary
 

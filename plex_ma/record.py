@@ -24,7 +24,7 @@ import sys
 import torch
 from PIL import Image
 
-from plex_ma.config import DEVICE_HELP, TrainConfig
+from plex_ma.config import DEVICE_HELP, TrainConfig, replace
 from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
 from plex_ma.trainers.driver import PLANNER_KINDS
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
             print(f"error: {e}", file=sys.stderr)
             raise SystemExit(2)
     else:
-        cfg, nets = TrainConfig(resolution=a.resolution, max_steps=a.max_steps, scenes=a.scenes or "procgen"), {}
+        cfg, nets = replace(TrainConfig(), resolution=a.resolution, max_steps=a.max_steps, scenes=a.scenes or "procgen"), {}
     results = run_episodes(cfg, nets, split=a.split, episodes=a.episodes, scenes=a.scenes, num_envs=1,
                            recorder=rec, planner=a.planner, executor=a.executor, seed=a.seed)
     if a.topdown_png and rec.episodes:

@@ -44,8 +44,8 @@ def main(argv: list[str] | None = None) -> dict:
     ctx = distributed.init_from_env(cfg.dist_timeout, backend=None if device.type == "cuda" else "gloo")
     workers = f" per worker x {ctx.world_size} workers ({ctx.backend})" if ctx.active else ""
     if ctx.is_main:
-        print(f"training {cfg.method}{'' if cfg.eli or not cfg.method.startswith('plex') else ' (no ELI)'} "
-              f"for {cfg.total_steps:,} steps with {cfg.num_envs} worlds{workers} at {cfg.resolution} px on {f'cuda:{ctx.local_rank}' if ctx.active and device.type == 'cuda' else device} "
+        print(f"training {cfg.method}{'' if cfg.env.eli or not cfg.method.startswith('plex') else ' (no ELI)'} "
+              f"for {cfg.total_steps:,} steps with {cfg.num_envs} worlds{workers} at {cfg.env.resolution} px on {f'cuda:{ctx.local_rank}' if ctx.active and device.type == 'cuda' else device} "
               f"-> {cfg.run_dir}")
     with distributed.graceful_stop():
         try:

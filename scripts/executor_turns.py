@@ -19,7 +19,7 @@ import argparse
 import numpy as np
 import torch
 
-from plex_ma.config import TrainConfig
+from plex_ma.config import TrainConfig, replace
 from plex_ma.envs.vector import PlexVectorEnv
 from plex_ma.trainers.driver import PLANNER_KINDS, PlexDriver, make_executor, make_planner
 from plex_ma.trainers.evaluation import load_policies
@@ -80,8 +80,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--steps", type=int, default=800, help="executor steps of the 16 worlds")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
-    cfg, nets = load_policies(a.checkpoint) if a.checkpoint else (TrainConfig(method="plex-gru", n_ex=18), {})
-    print(f"planner {a.planner}, executor {a.executor}, N_EX {cfg.n_ex}")
+    cfg, nets = load_policies(a.checkpoint) if a.checkpoint else (replace(TrainConfig(method="plex-gru"), n_ex=18), {})
+    print(f"planner {a.planner}, executor {a.executor}, N_EX {cfg.env.n_ex}")
     print(report(turns(cfg, nets, a.planner, a.executor, a.steps)))
 
 

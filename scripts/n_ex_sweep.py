@@ -13,11 +13,10 @@ before control returns to the planner.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 import torch
 
-from plex_ma.config import TrainConfig
+from plex_ma.config import TrainConfig, replace
 from plex_ma.trainers.driver import PLANNER_KINDS
 from plex_ma.trainers.evaluation import load_policies, run_episodes, summarize
 
@@ -44,7 +43,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
           f"{a.episodes} episodes, greedy")
     print(f"{'N_EX':>5} {'success':>8} {'spl':>6}")
     for n_ex in a.n_ex:
-        s = summarize(run_episodes(dataclasses.replace(cfg, n_ex=n_ex), nets, a.split, a.episodes,
+        s = summarize(run_episodes(replace(cfg, n_ex=n_ex), nets, a.split, a.episodes,
                                    num_envs=a.num_envs, planner=a.planner, executor=a.executor))
         rows.append({"n_ex": n_ex, "success": s["success"], "spl": s["spl"]})
         print(f"{n_ex:>5} {s['success']:>8.3f} {s['spl']:>6.3f}", flush=True)

@@ -40,9 +40,9 @@ def test_executor_turns_separate_straight_and_detour_sub_goals():
     turns at its sub-goal; map-los sets fewer sub-goals that need a detour than map."""
     sys.path.insert(0, str(SCRIPT.parent))
     import executor_turns
-    from plex_ma.config import TrainConfig
+    from plex_ma.config import TrainConfig, replace
 
-    cfg = TrainConfig(method="plex-gru", n_ex=18, resolution=64)
+    cfg = replace(TrainConfig(method="plex-gru"), n_ex=18, resolution=64)
     a = executor_turns.turns(cfg, {}, "map", "oracle", steps=150, worlds=8)
     b = executor_turns.turns(cfg, {}, "map-los", "oracle", steps=150, worlds=8)
     assert len(a) > 20 and len(b) > 20

@@ -4,7 +4,6 @@ Every subprocess has a timeout, so a hang fails the test instead of blocking CI.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import random
@@ -16,6 +15,7 @@ import time
 import pytest
 import torch
 
+from plex_ma.config import replace
 from plex_ma.trainers import distributed, make_trainer
 from plex_ma.trainers.checkpoint import load_checkpoint
 from tests.test_train import tiny
@@ -137,5 +137,5 @@ def test_failing_save_during_training_keeps_the_previous_checkpoint(tmp_path, mo
     monkeypatch.undo()
     assert load_checkpoint(tmp_path / "run" / "latest.pt")["step"] == 32
     assert not list((tmp_path / "run").glob(".*.tmp"))
-    t2 = make_trainer(dataclasses.replace(cfg, total_steps=64), log=False)
+    t2 = make_trainer(replace(cfg, total_steps=64), log=False)
     assert t2.step == 32

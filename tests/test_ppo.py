@@ -1,13 +1,12 @@
 """Generic PPO machinery: GAE conventions, the rollout buffer's minibatches, ppo_update."""
 
-import dataclasses
 import json
 
 import pytest
 import torch
 
 from plex_ma.bench import main as bench_main
-from plex_ma.config import preset_defaults
+from plex_ma.config import preset_defaults, replace
 from plex_ma.networks import Executor, Planner
 from plex_ma.trainers.plex import PlexTrainer
 from plex_ma.trainers.ppo import PPOConfig, RolloutBuffer, compute_gae, ppo_loss, ppo_update
@@ -172,7 +171,7 @@ def test_bench_adam_times_each_implementation(capsys):
 
 
 def test_trainer_uses_fused_adam(tmp_path):
-    cfg = dataclasses.replace(preset_defaults("smoke"), run_dir=str(tmp_path), progress=False, record_interval=0)
+    cfg = replace(preset_defaults("smoke"), run_dir=str(tmp_path), progress=False, record_interval=0)
     tr = PlexTrainer(cfg, log=False)
     assert all(o.defaults["fused"] for o in tr.opts.values())
     tr.env.close()

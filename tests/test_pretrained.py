@@ -3,12 +3,11 @@ names or files fail clearly."""
 
 from __future__ import annotations
 
-import dataclasses
 
 import pytest
 import torch
 
-from plex_ma.config import preset_defaults, validate
+from plex_ma.config import preset_defaults, replace, validate
 from plex_ma.trainers.evaluation import load_policies, run_episodes
 from plex_ma.trainers.checkpoint import CheckpointError, export_pretrained, load_checkpoint, pretrained_names
 from plex_ma.trainers import make_trainer
@@ -33,7 +32,7 @@ def test_pretrained_plex_gru_runs_an_episode():
 def test_unknown_pretrained_name_and_fine_tuning(tmp_path):
     with pytest.raises(CheckpointError, match="no pretrained agent 'nope'"):
         load_checkpoint("pretrained:nope")
-    cfg = dataclasses.replace(preset_defaults("cpu", "ppo-gru"), run_dir=str(tmp_path / "ft"), total_steps=64,
+    cfg = replace(preset_defaults("cpu", "ppo-gru"), run_dir=str(tmp_path / "ft"), total_steps=64,
                               num_envs=2, rollout_steps=16, progress=False, record_interval=0,
                               checkpoint="pretrained:ppo-gru")
     t = make_trainer(validate(cfg))
@@ -42,7 +41,7 @@ def test_unknown_pretrained_name_and_fine_tuning(tmp_path):
         torch.testing.assert_close(v, shipped[k])  # starts from the shipped weights
     assert t.step == 0
     t.close()
-    bad = dataclasses.replace(cfg, run_dir=str(tmp_path / "bad"), executor_hidden=64)
+    bad = replace(cfg, run_dir=str(tmp_path / "bad"), executor_hidden=64)
     with pytest.raises(CheckpointError, match="executor_hidden"):
         make_trainer(validate(bad))
 
@@ -62,7 +61,7 @@ def test_planner_architecture_must_match_to_fine_tune(tmp_path):
     """The shipped PLEX-GRU's planner has the value-iteration module: a run without it
     refuses the weights, naming the setting."""
     assert load_checkpoint("pretrained:plex-gru")["config"]["planner_value_iteration"] is True
-    cfg = dataclasses.replace(preset_defaults("cpu"), run_dir=str(tmp_path / "ft"), total_steps=64, num_envs=2,
+    cfg = replace(preset_defaults("cpu"), run_dir=str(tmp_path / "ft"), total_steps=64, num_envs=2,
                               rollout_steps=16, progress=False, record_interval=0, checkpoint="pretrained:plex-gru",
                               planner_value_iteration=False)
     with pytest.raises(CheckpointError, match="planner_value_iteration"):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from plex_ma.config import TrainConfig, parse, preset_defaults, validate
+from plex_ma.config import TrainConfig, from_dict, parse, preset_defaults, replace, validate
 from plex_ma.evaluate import main as evaluate_main
 from plex_ma.trainers.checkpoint import CheckpointError, atomic_save, find_resumable, load_checkpoint, save_checkpoint
 from plex_ma.trainers import make_trainer
@@ -19,10 +19,10 @@ from plex_ma.trainers.plex import PlexTrainer
 
 def tiny(tmp_path, **kw) -> TrainConfig:
     """A configuration small enough for a few seconds of training."""
-    cfg = dataclasses.replace(preset_defaults("smoke"), run_dir=str(tmp_path / "run"), total_steps=96, num_envs=2,
+    cfg = replace(preset_defaults("smoke"), run_dir=str(tmp_path / "run"), total_steps=96, num_envs=2,
                               rollout_steps=16, n_pl=2, num_scenes=2, executor_hidden=32, smt_memory=16,
                               progress=False, ppo_epochs=1, num_minibatches=1, torch_threads=1)
-    return validate(dataclasses.replace(cfg, **kw))
+    return validate(replace(cfg, **kw))
 
 
 @pytest.mark.parametrize("method,eli", [("plex-gru", True), ("plex-gru", False), ("plex-smt", True),
@@ -33,7 +33,7 @@ def test_smoke_training_every_method(tmp_path, method, eli):
     trainer.train()
     trainer.close()
     state = load_checkpoint(tmp_path / "run" / "latest.pt")
-    assert state["config"]["method"] == method and state["config"]["eli"] == eli
+    assert state["config"]["method"] == method and state["config"]["env"]["eli"] == eli
     assert state["step"] >= cfg.total_steps
     lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     keys = set().union(*lines)
@@ -50,7 +50,7 @@ def test_resume_restores_optimizer_and_step(tmp_path, capsys):
     t1.train()
     t1.close()
     saved = load_checkpoint(tmp_path / "run" / "latest.pt")
-    t2 = make_trainer(dataclasses.replace(cfg, total_steps=cfg.total_steps * 2))
+    t2 = make_trainer(replace(cfg, total_steps=cfg.total_steps * 2))
     assert "resuming" in capsys.readouterr().out
     assert t2.step == saved["step"] and t2.updates == saved["updates"]
     for k, opt in t2.opts.items():
@@ -72,7 +72,7 @@ def test_resume_refuses_another_method(tmp_path):
     t.train()
     t.close()
     with pytest.raises(CheckpointError, match="method"):
-        make_trainer(dataclasses.replace(cfg, method="ppo-gru"))
+        make_trainer(replace(cfg, method="ppo-gru"))
 
 
 def test_same_seed_same_first_update(tmp_path):
@@ -169,6 +169,32 @@ def test_cli_help_and_bad_config(capsys):
     assert parse(["--preset", "smoke", "--planner-target-kl", "0.03"]).planner_target_kl == 0.03
 
 
+def test_env_settings_are_train_flags_that_reach_the_env(tmp_path):
+    """Every env setting is a train flag of its own name, validated by the env, passed to the
+    training worlds (PLEX's whole config, PointNav's shared part) and saved in checkpoints
+    nested as ``env``; a flat saved config (env fields at the top level) reads the same."""
+    argv = ["--preset", "smoke", "--run-dir", str(tmp_path / "run"), "--slack-reward", "-0.02",
+            "--pose-noise", "0.05", "0.01", "--no-eli", "--n-ex", "7", "--success-distance", "0.3"]
+    cfg = parse(argv)
+    assert (cfg.env.slack_reward, cfg.env.pose_noise, cfg.env.eli, cfg.env.n_ex) == (-0.02, (0.05, 0.01), False, 7)
+    with pytest.raises(ValueError, match="success_distance=9"):
+        parse(["--preset", "smoke", "--success-distance", "9"])
+    with pytest.raises(ValueError, match="resolution.*40"):  # the env allows 16 px, the executor's CNN needs 40
+        parse(["--preset", "smoke", "--resolution", "32"])
+    for method, env_cls in (("plex-gru", "PlexConfig"), ("ppo-gru", "NavConfig")):
+        t = make_trainer(replace(cfg, method=method, progress=False), log=False)
+        got = t.env.config
+        assert type(got).__name__ == env_cls and got.slack_reward == -0.02 and got.pose_noise == (0.05, 0.01)
+        assert got.success_distance == 0.3 and got.split == "train"
+        if method == "plex-gru":
+            assert got.n_ex == 7 and not got.eli
+        t.close()
+    saved = dataclasses.asdict(cfg)
+    assert from_dict(saved) == cfg
+    flat = {k: v for k, v in saved.items() if k != "env"} | saved["env"]
+    assert from_dict(flat) == cfg
+
+
 def test_evaluate_cli_writes_json(tmp_path):
     cfg = tiny(tmp_path)
     t = make_trainer(cfg)
@@ -200,7 +226,7 @@ def test_executor_alone_learns_to_reach_subgoals(tmp_path):
     """In an open room, under random sub-goals 0.5-1.5 m away within +-0.5 rad, the executor's
     success (STOP within 0.5 m, over turns not already within reach) rises from about 0.1
     (a random executor) to at least 0.6."""
-    cfg = dataclasses.replace(
+    cfg = replace(
         preset_defaults("smoke"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1,
         planner="random", random_subgoal_distance=1.5, random_subgoal_angle=0.5, resolution=64, executor_hidden=128, lr=1e-3,
         max_steps=40, total_steps=16_000, num_envs=8, rollout_steps=32, ppo_epochs=4, num_minibatches=2,
@@ -222,7 +248,7 @@ def test_warmup_on_other_scenes_then_training_scenes(tmp_path):
     assert t.env.config.scenes == "open-room" and t.env.config.max_steps == 8
     t.train()
     t.close()
-    assert t.env.config.scenes == "procgen" and t.env.config.max_steps == cfg.max_steps
+    assert t.env.config.scenes == "procgen" and t.env.config.max_steps == cfg.env.max_steps
     assert all(w.scene_id.startswith("procgen") for w in t.env.worlds.sim.episodes)
     assert t.updates["planner"] >= 1  # the planner trained after the warm-up
 
@@ -248,7 +274,7 @@ def test_phases_teacher_subgoals_then_imitation_then_main(tmp_path):
 
     while t.step < cfg.total_steps:
         before, name = snap(), t._phase().name
-        t.cfg = dataclasses.replace(cfg, total_steps=t.step + 1)  # one executor rollout per call
+        t.cfg = replace(cfg, total_steps=t.step + 1)  # one executor rollout per call
         t.train()
         after = snap()
         snaps.setdefault(name, []).append((same(before["planner"], after["planner"]),
@@ -273,7 +299,7 @@ def test_plex_learns_to_reach_the_goal(tmp_path):
     planner's imitation of it, then both agents learn by PPO. No episode succeeds at first (reward below 0:
     slack and collisions); by 20k steps (about a minute of two cores) at least 5% of the
     last 100 training episodes (sampled actions) succeed and their reward is above 2."""
-    cfg = dataclasses.replace(
+    cfg = replace(
         preset_defaults("cpu"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1, max_steps=100,
         num_envs=8, rollout_steps=32, planner_warmup_steps=4_000, teacher_subgoal_steps=4_000,
         planner_imitation_steps=4_000, total_steps=20_000, progress=False, checkpoint_interval=1000,
@@ -308,10 +334,10 @@ def test_torch_threads_hold_after_the_simulator_starts(tmp_path):
     import subprocess
     import sys
 
-    code = ("import dataclasses, torch\n"
-            "from plex_ma.config import preset_defaults\n"
+    code = ("import torch\n"
+            "from plex_ma.config import preset_defaults, replace\n"
             "from plex_ma.trainers import make_trainer\n"
-            f"cfg = dataclasses.replace(preset_defaults('smoke'), run_dir={str(tmp_path / 'run')!r}, total_steps=32,\n"
+            f"cfg = replace(preset_defaults('smoke'), run_dir={str(tmp_path / 'run')!r}, total_steps=32,\n"
             "    num_envs=2, rollout_steps=16, num_scenes=2, torch_threads=1, progress=False)\n"
             "t = make_trainer(cfg)\n"
             "t.train()\n"

@@ -14,7 +14,7 @@ import pytest
 import rerun as rr
 import torch
 
-from plex_ma.config import TrainConfig, preset_defaults, validate
+from plex_ma.config import TrainConfig, preset_defaults, replace, validate
 from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
 from plex_ma.record import main as record_main
 from plex_ma.trainers.driver import PlexDriver, RandomExecutor, RandomPlanner
@@ -69,10 +69,10 @@ def recordings(path) -> list[tuple[set[str], set[str]]]:
 
 
 def tiny_config(tmp_path, **kw) -> TrainConfig:
-    cfg = dataclasses.replace(preset_defaults("smoke"), run_dir=str(tmp_path / "run"), num_envs=2, rollout_steps=16,
+    cfg = replace(preset_defaults("smoke"), run_dir=str(tmp_path / "run"), num_envs=2, rollout_steps=16,
                               n_pl=2, num_scenes=2, max_steps=25, progress=False, ppo_epochs=1, num_minibatches=1,
                               torch_threads=1, record_interval=0)
-    return validate(dataclasses.replace(cfg, **kw))
+    return validate(replace(cfg, **kw))
 
 
 def make_checkpoint(tmp_path, method: str = "plex-gru"):

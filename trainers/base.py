@@ -18,7 +18,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from plex_ma.config import TrainConfig
+from plex_ma.config import ENV_FIELDS, TrainConfig, from_dict
+from plex_ma.envs.rules import NavConfig
 from plex_ma.networks import Executor, FlatPolicy, Planner
 
 from . import distributed
@@ -35,21 +36,30 @@ LEGACY_CONFIG = {"executor_goal_skip": False, "planner_value_iteration": False}
 # The settings that shape the networks: a checkpoint loads only into a run with the same.
 ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_goal_skip")
 PLEX_ARCH_KEYS = ("planner_value_iteration",)  # ... and for the PLEX methods (the planner's)
+NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
 
 
-def saved_config(state: dict) -> dict:
+def setting(cfg: TrainConfig, key: str):
+    """A field of the config, the trainer's or its env's."""
+    return getattr(cfg.env if key in ENV_FIELDS else cfg, key)
+
+
+def saved_config(state: dict) -> TrainConfig:
     """A checkpoint's config, with the fields older checkpoints lack filled in."""
-    return {**LEGACY_CONFIG, **state["config"]}
+    try:
+        return from_dict({**LEGACY_CONFIG, **state["config"]})
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"checkpoint config is not valid: {e}") from None
 
 
-def env_kwargs(cfg: TrainConfig, split: str = "train") -> dict:
-    """The env config of a training config (PLEX's env options for the PLEX methods)."""
-    kw = dict(resolution=cfg.resolution, max_steps=cfg.max_steps, scenes=cfg.scenes, split=split)
-    if split == "train":
-        kw["num_scenes"] = cfg.num_scenes
-    if cfg.method.startswith("plex"):
-        kw |= dict(n_ex=cfg.n_ex, rho_max=cfg.rho_max, eli=cfg.eli, subgoal_radius=cfg.subgoal_radius,
-                   executor_stop_penalty=cfg.executor_stop_penalty)
+def env_kwargs(cfg: TrainConfig, split: str | None = None) -> dict:
+    """The env settings of a training config, as keyword arguments of the PLEX env (the PointNav
+    env's for the flat methods). ``split``, when it is not the config's own, selects that
+    split's default scenes and fixed episodes (evaluation)."""
+    names = [f.name for f in dataclasses.fields(cfg.env) if f.init] if cfg.method.startswith("plex") else NAV_FIELDS
+    kw = {k: getattr(cfg.env, k) for k in names}
+    if split is not None and split != cfg.env.split:
+        kw |= {"split": split, "num_scenes": None, "episodes_file": None}
     return kw
 
 
@@ -57,11 +67,12 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     """The networks of a method: {'planner', 'executor'} for PLEX, {'policy'} for flat PPO."""
     memory = cfg.method.split("-")[1]
     if cfg.method.startswith("plex"):
-        return {"planner": Planner(use_eli=cfg.eli, rho_max=cfg.rho_max, value_iteration=cfg.planner_value_iteration),
-                "executor": Executor(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
+        return {"planner": Planner(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max,
+                                   value_iteration=cfg.planner_value_iteration),
+                "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip,
                                      stop_prior=cfg.executor_stop_prior)}
-    return {"policy": FlatPolicy(memory=memory, resolution=cfg.resolution, smt_memory=cfg.smt_memory,
+    return {"policy": FlatPolicy(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                                  gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip)}
 
 
@@ -167,9 +178,9 @@ class Trainer:
         if isinstance(planner, dict) and "stop_skip.weight" not in planner:
             raise CheckpointError(f"{what} holds a planner with the linear heads, which plex-ma no longer has")
         for key in ARCH_KEYS + (PLEX_ARCH_KEYS if self.cfg.method.startswith("plex") else ()):
-            if saved.get(key) != getattr(self.cfg, key):
-                raise CheckpointError(f"{what} has {key}={saved.get(key)!r} but this run asks for "
-                                      f"{getattr(self.cfg, key)!r}")
+            if setting(saved, key) != setting(self.cfg, key):
+                raise CheckpointError(f"{what} has {key}={setting(saved, key)!r} but this run asks for "
+                                      f"{setting(self.cfg, key)!r}")
         try:
             for k, m in self.nets.items():
                 m.load_state_dict(state["models"][k])

@@ -4,7 +4,6 @@ close and far goals. ``python -m plex_ma.evaluate`` is its command line."""
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from pathlib import Path
 
@@ -27,8 +26,7 @@ def load_policies(path: str | Path, device: str | torch.device = "cpu") -> tuple
     """The config and networks stored in a checkpoint (loaded with ``weights_only=True``),
     on ``device``."""
     state = load_checkpoint(path)
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
-    cfg = TrainConfig(**{k: v for k, v in saved_config(state).items() if k in known})
+    cfg = saved_config(state)
     nets = build_policies(cfg)
     try:
         for k, m in nets.items():
@@ -68,8 +66,7 @@ def run_episodes(cfg: TrainConfig, nets: dict, split: str = "test", episodes: in
 
 def _run_episodes(cfg, nets, split, episodes, scenes, num_envs, episodes_file, recorder, sample, planner, executor,
                   seed) -> list[dict]:
-    scenes = scenes or cfg.scenes
-    kw = env_kwargs(dataclasses.replace(cfg, scenes=scenes), split)
+    kw = env_kwargs(cfg, split) | ({"scenes": scenes} if scenes else {})
     if episodes_file:
         kw["episodes_file"] = episodes_file
     plex = cfg.method.startswith("plex")
