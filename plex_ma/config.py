@@ -131,9 +131,11 @@ class TrainConfig:
     """the training worlds' settings (the flat methods use those PointNav shares; evaluation changes the split)"""
 
 
-# The env's fields, set by name beside the trainer's (the two sets of names are disjoint).
+# The env's fields, set by name beside the trainer's: the two sets of names must be disjoint.
 ENV_FIELDS = frozenset(f.name for f in dataclasses.fields(PlexConfig) if f.init)
-assert not ENV_FIELDS & {f.name for f in dataclasses.fields(TrainConfig)}
+if ENV_FIELDS & {f.name for f in dataclasses.fields(TrainConfig)}:
+    raise TypeError(f"TrainConfig and PlexConfig share field names: "
+                    f"{sorted(ENV_FIELDS & {f.name for f in dataclasses.fields(TrainConfig)})}")
 
 
 def replace(cfg: TrainConfig, **changes) -> TrainConfig:
