@@ -158,7 +158,7 @@ def _fake_run(out, arm: str, seed: int, success: float, reward: float) -> None:
     with gzip.open(d / "metrics.jsonl.gz", "wt") as f:
         for step in (0, 500, 1000):
             f.write(json.dumps({"step": step, "reward": reward * step / 1000, "metrics/success": success,
-                                "metrics/episodes": 0 if step == 0 else 5}) + "\n")
+                                "metrics/episodes": 0 if step == 0 else 100}) + "\n")
 
 
 def test_table1_report_aggregates_every_seed(tmp_path):
@@ -177,10 +177,32 @@ def test_table1_report_aggregates_every_seed(tmp_path):
     assert res["plex-gru"]["test"]["r2v"]["all"]["reward"]["mean"] == pytest.approx(1.0)
     assert res["ppo-smt"]["seeds"] == [0]
     assert res["ppo-smt"]["test"]["procgen"]["all"]["reward"]["values"] == [0.5]
+    # steps to success 0.5: seed 1 of plex-gru has none (0.4), the fake runs log phase-less rows
+    assert res["plex-gru"]["steps_to_success"]["per_seed"] == {"0": None, "1": None}
     md = (tmp_path / "table1.md").read_text()
-    assert "| PLEX GRU | 2 | 2.000 ± 1.414 | 0.300 ± 0.141 |" in md
+    assert "| PLEX GRU | 2 | 2.000 ± 1.414 | 0.300 ± 0.141 | 0.200 / 0.400 |" in md
     for png in ("fig4.png", "fig5b.png"):
         assert (tmp_path / png).stat().st_size > 1000
+
+
+def test_table1_steps_to_success_count_the_learned_planner_only(tmp_path):
+    """Steps to success 0.5 need a full window of 100 training episodes, and for PLEX a phase in
+    which the learned planner acts (a teacher planner's successes do not count)."""
+    import gzip
+
+    from plex_ma.experiments.table1 import _load_curve, steps_to_success
+
+    rows = [(1000, 1, 0.9, 100),  # teacher phase: not the learned planner's
+            (2000, 2, 0.6, 40),  # the learned planner, but the window holds 40 episodes
+            (3000, 2, 0.45, 100), (4000, 2, 0.55, 100), (5000, 2, 0.7, 100)]
+    path = tmp_path / "m.jsonl.gz"
+    with gzip.open(path, "wt") as f:
+        for step, phase, success, n in rows:
+            f.write(json.dumps({"step": step, "phase": phase, "reward": 1.0, "metrics/success": success,
+                                "metrics/episodes": n}) + "\n")
+    curve = _load_curve(path)
+    assert steps_to_success(curve, 0.5) == 4000 and steps_to_success(curve, 0.8) is None
+    assert np.isnan(curve["success"][0]) and curve["success"][1] == 0.6
 
 
 def test_table1_trains_and_evaluates_one_smoke_run(tmp_path):

@@ -17,7 +17,9 @@ public CLIs, evaluates each run greedily, and writes the table and the figures::
 Outputs under ``--out`` (default ``results/table1/``):
 
 * ``table1.json``: per arm, every seed's test metrics and their mean and standard
-  deviation (procgen test, close/far, r2v test), plus the configuration and provenance;
+  deviation (procgen test, close/far, r2v test), and the training steps each seed needed to
+  reach success ``--success-level`` (0.5; the paper's claim), plus the configuration and
+  provenance;
 * ``table1.md``: the same as a Markdown table;
 * ``fig4.png``: training reward and success (the last 100 training episodes at each
   logged step) against environment steps, mean over seeds with the seeds' range shaded;
@@ -45,7 +47,13 @@ from pathlib import Path
 import numpy as np
 
 from . import repo_root
+from plex_ma.trainers.base import EpisodeStats
+from plex_ma.trainers.plex import PHASES
+
 from .common import machine, mean_sd_se, provenance, pyplot, save_figure, write_json
+
+# The PLEX phases from which the learned planner sets the sub-goals (logged as "phase").
+LEARNED_PLANNER_PHASE = PHASES.index("planner-imitation")
 
 
 @dataclass(frozen=True)
@@ -76,6 +84,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--eval-episodes", type=int, default=200, help="procgen test episodes per run")
     p.add_argument("--r2v-episodes", type=int, default=100, help="real-plan test episodes per run (0: skip)")
     p.add_argument("--jobs", type=int, default=1, help="runs trained at the same time")
+    p.add_argument("--success-level", type=float, default=0.5,
+                   help="report the training steps each run needs to reach this success (the paper's claim: 0.5)")
     p.add_argument("--runs-dir", type=Path, default=None,
                    help="where runs and checkpoints go (default: runs/table1 at the repository root)")
     p.add_argument("--report-only", action="store_true", help="only rebuild the table and figures from the runs")
@@ -135,14 +145,29 @@ def _load_eval(path: Path) -> dict | None:
 
 
 def _load_curve(path: Path) -> dict | None:
+    """A run's training curve: reward and success of its last 100 training episodes (sampled
+    actions) at each logged step. For PLEX, only the phases in which the learned planner
+    acts count (before them a random or teacher planner sets the sub-goals): earlier steps
+    are NaN."""
     if not path.is_file():
         return None
     with gzip.open(path, "rt") as f:
         rows = [json.loads(line) for line in f if line.strip()]
     rows = [r for r in rows if r.get("metrics/episodes", 0) > 0]
+    own = np.array([r.get("phase", LEARNED_PLANNER_PHASE) >= LEARNED_PLANNER_PHASE for r in rows], bool)
     return {"step": np.array([r["step"] for r in rows], float),
-            "reward": np.array([r["reward"] for r in rows], float),
-            "success": np.array([r["metrics/success"] for r in rows], float)}
+            "reward": np.where(own, [r["reward"] for r in rows], np.nan),
+            "success": np.where(own, [r["metrics/success"] for r in rows], np.nan),
+            "episodes": np.array([r["metrics/episodes"] for r in rows], int)}
+
+
+def steps_to_success(curve: dict | None, level: float) -> int | None:
+    """The first logged step at which the last 100 training episodes (a full window) reach
+    success ``level``; None if the run never does."""
+    if curve is None:
+        return None
+    hit = np.flatnonzero((curve["success"] >= level) & (curve["episodes"] >= EpisodeStats.window))
+    return int(curve["step"][hit[0]]) if len(hit) else None
 
 
 def _summary(values: list[float]) -> dict:
@@ -170,7 +195,10 @@ def collect(args, out: Path) -> dict:
                         if e.get("episodes", 0) > 0 and e.get(m) is not None:
                             vals.append(float(e[m]))
                     agg.setdefault(src, {}).setdefault(part, {})[m] = _summary(vals)
-        table[name] = {"label": ARMS[name].label, "seeds": sorted(per_seed), "test": agg}
+        reach = {s: steps_to_success(_load_curve(out / "runs" / f"{name}-s{s}" / "metrics.jsonl.gz"),
+                                     args.success_level) for s in sorted(per_seed)}
+        table[name] = {"label": ARMS[name].label, "seeds": sorted(per_seed), "test": agg,
+                       "steps_to_success": {"level": args.success_level, "per_seed": reach}}
     return table
 
 
@@ -183,16 +211,22 @@ def _fmt(s: dict, nd: int = 3) -> str:
 def write_markdown(table: dict, args, path: Path) -> None:
     lines = [f"Budget {args.budget:,} environment steps per run, preset `{args.preset}`; mean ± std over "
              f"seeds; greedy evaluation on {args.eval_episodes} procgen test episodes and "
-             f"{args.r2v_episodes} r2v test episodes.", "",
-             "| method | seeds | reward | success | SPL | reward, close | reward, far | success, close | "
-             "success, far | r2v reward | r2v success |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             f"{args.r2v_episodes} r2v test episodes. Steps to {args.success_level}: the first logged step "
+             f"at which the last 100 training episodes (sampled actions; for PLEX, with the learned planner "
+             f"acting) reach that success, per seed (-: never).", "",
+             "| method | seeds | reward | success | success per seed | SPL | reward, close | reward, far | "
+             "success, close | success, far | r2v reward | r2v success | "
+             f"steps to {args.success_level} per seed |",
+             "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---|"]
     for t in table.values():
         p, r = t["test"]["procgen"], t["test"]["r2v"]
+        per_seed = " / ".join(f"{v:.3f}" for v in p["all"]["success"].get("values", [])) or "-"
+        reach = " / ".join("-" if v is None else f"{v:,}" for v in t["steps_to_success"]["per_seed"].values()) or "-"
         lines.append(f"| {t['label']} | {len(t['seeds'])} | {_fmt(p['all']['reward'])} | "
-                     f"{_fmt(p['all']['success'])} | {_fmt(p['all']['spl'])} | {_fmt(p['close']['reward'])} | "
-                     f"{_fmt(p['far']['reward'])} | {_fmt(p['close']['success'])} | {_fmt(p['far']['success'])} | "
-                     f"{_fmt(r['all']['reward'])} | {_fmt(r['all']['success'])} |")
+                     f"{_fmt(p['all']['success'])} | {per_seed} | {_fmt(p['all']['spl'])} | "
+                     f"{_fmt(p['close']['reward'])} | {_fmt(p['far']['reward'])} | {_fmt(p['close']['success'])} | "
+                     f"{_fmt(p['far']['success'])} | {_fmt(r['all']['reward'])} | {_fmt(r['all']['success'])} | "
+                     f"{reach} |")
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -257,6 +291,8 @@ def plot_fig5b(table: dict, path: Path) -> None:
 def main(args, out: Path) -> dict:
     if args.budget <= 0 or args.eval_episodes <= 0 or args.r2v_episodes < 0 or args.jobs < 1:
         raise SystemExit("table1: --budget, --eval-episodes and --jobs must be positive, --r2v-episodes >= 0")
+    if not 0 < args.success_level <= 1:
+        raise SystemExit(f"table1: --success-level must be in (0, 1], got {args.success_level}")
     t0 = time.time()
     runs = [] if args.report_only else run_all(args, out)
     table = collect(args, out)
