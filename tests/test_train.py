@@ -38,6 +38,8 @@ def test_smoke_training_every_method(tmp_path, method, eli):
     lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     keys = set().union(*lines)
     assert "perf/fps" in keys
+    if os.path.exists("/proc/self/statm"):  # resident memory, for soak checks (Linux)
+        assert all(50 < x["perf/rss_mib"] < 64_000 for x in lines if "perf/fps" in x)
     prefix = "learner/executor_" if method.startswith("plex") else "learner/"
     for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction", "explained_variance",
               "grad_norm"):

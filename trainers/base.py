@@ -25,7 +25,7 @@ from plex_ma.networks import Executor, FlatPolicy, Planner
 from . import distributed
 from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from .device import resolve_device
-from .logger import MetricLogger
+from .logger import MetricLogger, resident_memory_mib
 from .ppo import PPOConfig
 
 CHECKPOINT_FORMAT = 1
@@ -252,6 +252,7 @@ class Trainer:
         for k, v in timing.items():
             metrics[f"perf/share_{k}"] = v / wall
         metrics["perf/share_other"] = max(0.0, 1.0 - sum(timing.values()) / wall)
+        metrics["perf/rss_mib"] = resident_memory_mib()  # None (not logged) off Linux
         if n_updates % cfg.log_interval == 0:
             self.log(metrics)
             clock.last_log = metrics

@@ -1,13 +1,26 @@
 """Metrics to ``metrics.jsonl`` (one JSON object per line) and TensorBoard, with
-habitat-like keys: ``metrics/success``, ``metrics/spl``, ``reward``, ``learner/*``, ``perf/fps``."""
+habitat-like keys: ``metrics/success``, ``metrics/spl``, ``reward``, ``learner/*``, ``perf/fps``,
+``perf/rss_mib`` (the process's resident memory, for soak checks of long runs)."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 from torch.utils.tensorboard import SummaryWriter
+
+
+def resident_memory_mib() -> float | None:
+    """This process's resident set size in MiB (from Linux's /proc), or None where it cannot
+    be read."""
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 class MetricLogger:
