@@ -317,6 +317,10 @@ class EpisodeRecorder:
             self._close_stream(self._train_rec)
             keep.append(self._train_rec)
             self._train_rec = None
+        # rerun keeps a dropped stream's native state until orphaned recordings are cleaned up
+        # (as rr.init does); without this, what each recording logged stays in memory for the
+        # rest of a training run
+        rr.bindings.flush_and_cleanup_orphaned_recordings()
         if self._tmpdir is None:
             return self.episodes
         files = [e.file for e in keep if e.file.exists()]
@@ -382,6 +386,7 @@ class EpisodeRecorder:
     def _close_stream(ep: _Episode) -> None:
         ep.rec.flush()
         ep.rec.disconnect()
+        ep.rec = None  # with no reference left, end() frees the stream
 
     # ------------------------------------------------------------------ episodes
     def _start_episode(self) -> None:
