@@ -33,8 +33,8 @@ def test_unknown_pretrained_name_and_fine_tuning(tmp_path):
     with pytest.raises(CheckpointError, match="no pretrained agent 'nope'"):
         load_checkpoint("pretrained:nope")
     cfg = replace(preset_defaults("cpu", "ppo-gru"), run_dir=str(tmp_path / "ft"), total_steps=64,
-                              num_envs=2, rollout_steps=16, progress=False, record_interval=0,
-                              checkpoint="pretrained:ppo-gru")
+                  num_envs=2, rollout_steps=16, progress=False, record_interval=0,
+                  checkpoint="pretrained:ppo-gru")
     t = make_trainer(validate(cfg))
     shipped = load_checkpoint("pretrained:ppo-gru")["models"]["policy"]
     for k, v in t.nets["policy"].state_dict().items():
@@ -62,7 +62,7 @@ def test_planner_architecture_must_match_to_fine_tune(tmp_path):
     refuses the weights, naming the setting."""
     assert load_checkpoint("pretrained:plex-gru")["config"]["planner_value_iteration"] is True
     cfg = replace(preset_defaults("cpu"), run_dir=str(tmp_path / "ft"), total_steps=64, num_envs=2,
-                              rollout_steps=16, progress=False, record_interval=0, checkpoint="pretrained:plex-gru",
-                              planner_value_iteration=False)
+                  rollout_steps=16, progress=False, record_interval=0, checkpoint="pretrained:plex-gru",
+                  planner_value_iteration=False)
     with pytest.raises(CheckpointError, match="planner_value_iteration"):
         make_trainer(validate(cfg))

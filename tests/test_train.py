@@ -20,8 +20,8 @@ from plex_ma.trainers.plex import PlexTrainer
 def tiny(tmp_path, **kw) -> TrainConfig:
     """A configuration small enough for a few seconds of training."""
     cfg = replace(preset_defaults("smoke"), run_dir=str(tmp_path / "run"), total_steps=96, num_envs=2,
-                              rollout_steps=16, n_pl=2, num_scenes=2, executor_hidden=32, smt_memory=16,
-                              progress=False, ppo_epochs=1, num_minibatches=1, torch_threads=1)
+                  rollout_steps=16, n_pl=2, num_scenes=2, executor_hidden=32, smt_memory=16,
+                  progress=False, ppo_epochs=1, num_minibatches=1, torch_threads=1)
     return validate(replace(cfg, **kw))
 
 

@@ -70,8 +70,8 @@ def recordings(path) -> list[tuple[set[str], set[str]]]:
 
 def tiny_config(tmp_path, **kw) -> TrainConfig:
     cfg = replace(preset_defaults("smoke"), run_dir=str(tmp_path / "run"), num_envs=2, rollout_steps=16,
-                              n_pl=2, num_scenes=2, max_steps=25, progress=False, ppo_epochs=1, num_minibatches=1,
-                              torch_threads=1, record_interval=0)
+                  n_pl=2, num_scenes=2, max_steps=25, progress=False, ppo_epochs=1, num_minibatches=1,
+                  torch_threads=1, record_interval=0)
     return validate(replace(cfg, **kw))
 
 
