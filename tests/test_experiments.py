@@ -181,6 +181,7 @@ def test_table1_report_aggregates_every_seed(tmp_path):
     assert res["plex-gru"]["steps_to_success"]["per_seed"] == {"0": None, "1": None}
     md = (tmp_path / "table1.md").read_text()
     assert "| PLEX GRU | 2 | 2.000 ± 1.414 | 0.300 ± 0.141 | 0.200 / 0.400 |" in md
+    assert "| PPO SMT | 1 | 0.500 | 0.100 | 0.100 |" in md  # one seed: no spread
     for png in ("fig4.png", "fig5b.png"):
         assert (tmp_path / png).stat().st_size > 1000
 

@@ -205,6 +205,8 @@ def collect(args, out: Path) -> dict:
 def _fmt(s: dict, nd: int = 3) -> str:
     if not s.get("values"):
         return "-"
+    if len(s["values"]) == 1:  # one seed: no spread to report
+        return f"{s['mean']:.{nd}f}"
     return f"{s['mean']:.{nd}f} ± {s['std']:.{nd}f}"
 
 
