@@ -203,7 +203,7 @@ def test_table1_steps_to_success_count_the_learned_planner_only(tmp_path):
                                 "metrics/episodes": n}) + "\n")
     curve = _load_curve(path)
     assert steps_to_success(curve, 0.5) == 4000 and steps_to_success(curve, 0.8) is None
-    assert np.isnan(curve["success"][0]) and curve["success"][1] == 0.6
+    assert np.isnan(curve["success"][:2]).all() and curve["success"][2] == 0.45
 
 
 def test_table1_trains_and_evaluates_one_smoke_run(tmp_path):

@@ -146,15 +146,16 @@ def _load_eval(path: Path) -> dict | None:
 
 def _load_curve(path: Path) -> dict | None:
     """A run's training curve: reward and success of its last 100 training episodes (sampled
-    actions) at each logged step. For PLEX, only the phases in which the learned planner
-    acts count (before them a random or teacher planner sets the sub-goals): earlier steps
-    are NaN."""
+    actions) at each logged step, NaN until 100 have ended. For PLEX, only the phases in
+    which the learned planner acts count (before them a random or teacher planner sets the
+    sub-goals), and the window starts empty when they begin."""
     if not path.is_file():
         return None
     with gzip.open(path, "rt") as f:
         rows = [json.loads(line) for line in f if line.strip()]
     rows = [r for r in rows if r.get("metrics/episodes", 0) > 0]
-    own = np.array([r.get("phase", LEARNED_PLANNER_PHASE) >= LEARNED_PLANNER_PHASE for r in rows], bool)
+    own = np.array([r.get("phase", LEARNED_PLANNER_PHASE) >= LEARNED_PLANNER_PHASE
+                    and r["metrics/episodes"] >= EpisodeStats.window for r in rows], bool)
     return {"step": np.array([r["step"] for r in rows], float),
             "reward": np.where(own, [r["reward"] for r in rows], np.nan),
             "success": np.where(own, [r["metrics/success"] for r in rows], np.nan),
@@ -166,7 +167,7 @@ def steps_to_success(curve: dict | None, level: float) -> int | None:
     success ``level``; None if the run never does."""
     if curve is None:
         return None
-    hit = np.flatnonzero((curve["success"] >= level) & (curve["episodes"] >= EpisodeStats.window))
+    hit = np.flatnonzero(curve["success"] >= level)  # NaN (a window not yet full) compares False
     return int(curve["step"][hit[0]]) if len(hit) else None
 
 
