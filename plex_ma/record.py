@@ -81,7 +81,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
             print(f"error: {e}", file=sys.stderr)
             raise SystemExit(2)
     else:
-        cfg, nets = replace(TrainConfig(), resolution=a.resolution, max_steps=a.max_steps, scenes=a.scenes or "procgen"), {}
+        cfg = replace(TrainConfig(), resolution=a.resolution, max_steps=a.max_steps, scenes=a.scenes or "procgen")
+        nets = {}
     results = run_episodes(cfg, nets, split=a.split, episodes=a.episodes, scenes=a.scenes, num_envs=1,
                            recorder=rec, planner=a.planner, executor=a.executor, seed=a.seed)
     if a.topdown_png and rec.episodes:
