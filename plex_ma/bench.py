@@ -78,7 +78,7 @@ import numpy as np
 import torch
 
 import plex_ma.viz as vr
-from plex_ma.config import DEVICE_HELP, ENV_FIELDS, TrainConfig, preset_defaults, replace, validate
+from plex_ma.config import DEVICE_HELP, ENV_FIELDS, TrainConfig, preset_defaults, replace, setting, validate
 from plex_ma.envs import plex_nav_v0
 from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
 from plex_ma.envs.sim.episodes import sample_episode
@@ -431,7 +431,7 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
     for key, text in (overrides or {}).items():
         if key not in fields:
             raise ValueError(f"--set: TrainConfig and its env have no field {key!r}")
-        current = getattr(cfg.env if key in ENV_FIELDS else cfg, key)
+        current = setting(cfg, key)
         if isinstance(current, bool):
             if text.lower() not in ("true", "false", "1", "0"):
                 raise ValueError(f"--set {key}: expected true or false, got {text!r}")

@@ -138,6 +138,11 @@ if ENV_FIELDS & {f.name for f in dataclasses.fields(TrainConfig)}:
                     f"{sorted(ENV_FIELDS & {f.name for f in dataclasses.fields(TrainConfig)})}")
 
 
+def setting(cfg: TrainConfig, name: str):
+    """A field of the config by its name, the trainer's or its env's."""
+    return getattr(cfg.env if name in ENV_FIELDS else cfg, name)
+
+
 def replace(cfg: TrainConfig, **changes) -> TrainConfig:
     """``cfg`` with fields changed, the trainer's and the env's alike by their names."""
     env = {k: changes.pop(k) for k in list(changes) if k in ENV_FIELDS}
@@ -211,8 +216,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     """Raise ValueError naming the first bad field."""
     def need(cond, name, why):
         if not cond:
-            value = getattr(cfg.env if name in ENV_FIELDS else cfg, name)
-            raise ValueError(f"config --{name.replace('_', '-')}={value!r}: {why}")
+            raise ValueError(f"config --{name.replace('_', '-')}={setting(cfg, name)!r}: {why}")
 
     cfg.env.validate()  # the env's fields, by the env's own rules
 

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from plex_ma.config import ENV_FIELDS, TrainConfig, from_dict
+from plex_ma.config import TrainConfig, from_dict, setting
 from plex_ma.envs.rules import NavConfig
 from plex_ma.networks import Executor, FlatPolicy, Planner
 
@@ -37,11 +37,6 @@ LEGACY_CONFIG = {"executor_goal_skip": False, "planner_value_iteration": False}
 ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_goal_skip")
 PLEX_ARCH_KEYS = ("planner_value_iteration",)  # ... and for the PLEX methods (the planner's)
 NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
-
-
-def setting(cfg: TrainConfig, key: str):
-    """A field of the config, the trainer's or its env's."""
-    return getattr(cfg.env if key in ENV_FIELDS else cfg, key)
 
 
 def saved_config(state: dict) -> TrainConfig:
