@@ -156,8 +156,7 @@ def from_dict(d: dict) -> TrainConfig:
     in ``d["env"]`` or, in a flat config, at the top level; keys neither level knows are
     ignored."""
     known = {f.name for f in dataclasses.fields(TrainConfig)} - {"env"}
-    env = {k: v for k, v in d.items() if k in ENV_FIELDS} | dict(d.get("env") or {})
-    env = TRAIN_ENV | {k: v for k, v in env.items() if k in ENV_FIELDS}
+    env = TRAIN_ENV | {k: v for k, v in (d | dict(d.get("env") or {})).items() if k in ENV_FIELDS}
     return TrainConfig(**{k: v for k, v in d.items() if k in known}, env=make_config(PlexConfig, env))
 
 

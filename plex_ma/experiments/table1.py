@@ -46,10 +46,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import repo_root
 from plex_ma.trainers.base import EpisodeStats
 from plex_ma.trainers.plex import PHASES
 
+from . import repo_root
 from .common import machine, mean_sd_se, provenance, pyplot, save_figure, write_json
 
 # The PLEX phases from which the learned planner sets the sub-goals (logged as "phase").
@@ -158,8 +158,7 @@ def _load_curve(path: Path) -> dict | None:
                     and r["metrics/episodes"] >= EpisodeStats.window for r in rows], bool)
     return {"step": np.array([r["step"] for r in rows], float),
             "reward": np.where(own, [r["reward"] for r in rows], np.nan),
-            "success": np.where(own, [r["metrics/success"] for r in rows], np.nan),
-            "episodes": np.array([r["metrics/episodes"] for r in rows], int)}
+            "success": np.where(own, [r["metrics/success"] for r in rows], np.nan)}
 
 
 def steps_to_success(curve: dict | None, level: float) -> int | None:
