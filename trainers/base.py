@@ -171,7 +171,7 @@ class Trainer:
         saved = saved_config(state)
         planner = state.get("models", {}).get("planner")
         if isinstance(planner, dict) and "stop_skip.weight" not in planner:
-            raise CheckpointError(f"{what} holds a planner with the linear heads, which plex-ma no longer has")
+            raise CheckpointError(f"{what} holds a planner with linear heads; plex-ma's planner has only the goal-relative MLP heads")
         for key in ARCH_KEYS + (PLEX_ARCH_KEYS if self.cfg.method.startswith("plex") else ()):
             if setting(saved, key) != setting(self.cfg, key):
                 raise CheckpointError(f"{what} has {key}={setting(saved, key)!r} but this run asks for "
