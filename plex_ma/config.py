@@ -169,7 +169,7 @@ PRESETS: dict[str, dict] = {
     # paper's 10, an executor turning 10 degrees an action cannot face a sub-goal behind it
     # before control returns, and planners re-deciding from the half-turned heading loop in
     # place: the map planner over the oracle executor succeeds in 0.870 of 200 val episodes
-    # at N_EX = 10 and 0.975 at 18). A 128-unit executor GRU (at 512 the GRU is half
+    # at N_EX = 10 and 0.975 at 18, commit b0a80be). A 128-unit executor GRU (at 512 the GRU is half
     # of the update's FLOPs) and lr 1e-3 for the executor, 2.5e-4 (the paper's) for the
     # planner; a -0.5 executor reward for a STOP short of its sub-goal (without it the
     # executor's STOP was a free exit and its policy collapsed onto it); the executor's STOP
