@@ -130,11 +130,10 @@ every SuperSuit wrapper and what it does here.
 
 ## Version history
 
-* v0: initial release. (Before the first release the executor's STOP bonus was also paid
-  for sub-goals set already within reach; see Rewards.)
+* v0: initial release.
 * v0, infos and rendering: infos hold numbers only, with the same keys from `reset` on
-  (`scene_index` in place of the string `scene_id`, which moved to `env.unwrapped.scene_id`;
-  `success` and `spl` read 0.0 until the end), and the `human` render mode. Observations,
+  (`scene_index`; the scene's name is `env.unwrapped.scene_id`; `success` and `spl` read
+  0.0 until the end), and the `human` render mode. Observations,
   actions, rewards and episodes are unchanged, so results stay comparable and the name
   stays `plex_nav_v0`.
 """

@@ -184,7 +184,7 @@ PRESETS: dict[str, dict] = {
     # episodes; it teaches the executor to turn both ways), 260k steps of the executor under
     # the map-los planner's sub-goals in the houses, then the planner learns by PPO and by
     # imitating the map-los planner (DAgger) to the end of the run, the executor learning
-    # beside it (by PPO alone, the planner's updates grew to approx_kl 0.1-0.25 and success
+    # beside it (by PPO alone, the planner's updates grew to approx_kl 0.10-0.27 and success
     # fell). map-los plans on the agent's own ego map and sets each sub-goal where a straight
     # line over seen floor reaches it (a learned executor rarely reaches one behind a wall):
     # no ground truth enters training beyond the reward. The planner also reads a
