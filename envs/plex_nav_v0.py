@@ -133,9 +133,8 @@ every SuperSuit wrapper and what it does here.
 * v0: initial release.
 * v0, infos and rendering: infos hold numbers only, with the same keys from `reset` on
   (`scene_index`; the scene's name is `env.unwrapped.scene_id`; `success` and `spl` read
-  0.0 until the end), and the `human` render mode. Observations,
-  actions, rewards and episodes are unchanged, so results stay comparable and the name
-  stays `plex_nav_v0`.
+  0.0 until the end), and the `human` render mode. Observations, actions, rewards and
+  episodes are unchanged, so results stay comparable and the name stays `plex_nav_v0`.
 """
 
 from .compat import compat_env

@@ -118,8 +118,8 @@ def shutdown() -> None:
     """Leave the process group (after a normal end; a failed run just exits)."""
     global _ctx
     if dist.is_available() and dist.is_initialized():
-        # all ranks leave together: rank 0 may still be saving the last checkpoint, and a
-        # gloo rank that tears its connections down while a peer is busy can abort
+        # all ranks leave together, so none tears the group down while rank 0 still saves
+        # the last checkpoint
         _collective("the barrier before leaving the process group", dist.barrier)
         dist.destroy_process_group()
     _ctx = DistContext()
