@@ -121,6 +121,8 @@ class TrainConfig:
     """updates between rerun recordings of an episode into the run dir (0: never)"""
     torch_threads: int = 0
     """torch intra-op threads (0: torch's default)"""
+    parallel_updates: bool = True
+    """PLEX only: the planner learns (PPO update, imitation steps) on a second thread while the executor's PPO update runs (single-process runs; under torchrun they take turns)"""
     device: str = "auto"
     """where the networks, rollouts and PPO updates run: auto (CUDA when present), cpu, cuda or cuda:N (the simulator stays on the CPU)"""
     progress: bool = True

@@ -87,6 +87,38 @@ def test_same_seed_same_first_update(tmp_path):
     assert all(torch.equal(params[0][k], params[1][k]) for k in params[0])
 
 
+def test_parallel_planner_learning_matches_sequential(tmp_path):
+    """The planner's learning on its own thread beside the executor's update gives the same
+    networks, bit for bit, as the two updates one after the other: they share no parameters
+    and draw from separate generators. The run covers the planner's PPO updates and its
+    imitation steps."""
+    nets = {}
+    for parallel in (True, False):
+        cfg = tiny(tmp_path / str(parallel), planner_warmup_steps=0, teacher_subgoal_steps=32,
+                   planner_imitation_steps=1000, total_steps=128, n_pl=1, parallel_updates=parallel)
+        t = make_trainer(cfg, log=False)
+        assert (t.pool is not None) == parallel
+        t.train()
+        t.close()
+        assert t.updates["planner"] >= 2
+        nets[parallel] = {k: {n: v.clone() for n, v in m.state_dict().items()} for k, m in t.nets.items()}
+    for k in nets[True]:
+        assert all(torch.equal(nets[True][k][n], nets[False][k][n]) for n in nets[True][k]), k
+
+
+def test_resume_restores_the_planner_sampler(tmp_path):
+    """The planner's generator (its minibatch order and imitation samples) is checkpointed."""
+    cfg = tiny(tmp_path, planner_warmup_steps=0, teacher_subgoal_steps=0, planner_imitation_steps=1000, n_pl=1)
+    t = make_trainer(cfg)
+    t.train()
+    t.close()
+    saved = load_checkpoint(tmp_path / "run" / "latest.pt")
+    resumed = make_trainer(replace(cfg, total_steps=2 * cfg.total_steps))
+    assert torch.equal(resumed.planner_gen.get_state(), saved["planner_sampler_rng"])
+    assert torch.equal(resumed.planner_gen.get_state(), t.planner_gen.get_state())
+    resumed.close()
+
+
 def test_corrupt_latest_falls_back_to_previous(tmp_path):
     run = tmp_path / "run"
     save_checkpoint(run, {"format": 1, "config": {}, "step": 1}, 1)

@@ -8,7 +8,9 @@ PLEX runs through the rollout driver (:mod:`.driver`), per iteration:
 2. *One executor step* in all N worlds at once (``PlexDriver.step``). The executor's memory
    restarts at the first step of every turn (the env's ``executor_memory_restart`` hint).
 3. After ``rollout_steps`` executor steps: a PPO update of the executor on its own rewards
-   (gamma_EX per executor step). An executor turn ends at its STOP (terminal), at its
+   (gamma_EX per executor step). The planner's learning of the same iteration (step 4 and
+   its imitation steps) runs on a second thread beside it (``parallel_updates``): the two
+   agents share no parameters, and each draws its minibatches from its own generator. An executor turn ends at its STOP (terminal), at its
    N_EX-th action (a truncation: bootstrap from V of the observation after it, with the
    memory it had) or at the episode's end.
 4. Each planner decision is one transition whose reward is everything the planner earned
@@ -33,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -120,11 +123,32 @@ class ImitationSet:
         return obs, self.data["stop"][idx], self.data["subgoal"][idx]
 
 
+class _Done:
+    """A finished call's result, read like a future's."""
+
+    def __init__(self, value):
+        self.value = value
+
+    def result(self):
+        return self.value
+
+
+def _call(fn, *args) -> _Done:
+    return _Done(fn(*args))
+
+
 class PlexTrainer(Trainer):
     """Independent PPO for the planner and the executor (see the module docstring)."""
 
     def __init__(self, cfg: TrainConfig, log: bool = True, record: Callable[[Trainer], object] | None = None):
+        self.planner_gen: torch.Generator | None = None  # the planner's minibatches and imitation samples
         super().__init__(cfg, log, record)
+        if self.planner_gen is None:  # not resumed: a seed drawn from the executor's sampler (seeded per worker)
+            self.planner_gen = torch.Generator().manual_seed(int(torch.randint(2**62, (1,), generator=self.gen)))
+        # the planner learns on a second thread beside the executor's update (single process:
+        # under torchrun both updates all-reduce over one process group, so they take turns)
+        self.pool = (ThreadPoolExecutor(1, initializer=self._set_threads)
+                     if cfg.parallel_updates and self.dist.world_size == 1 else None)
         self.planner: Planner = self.nets["planner"]
         self.executor: Executor = self.nets["executor"]
         self.np_rng = np.random.default_rng(cfg.seed + self.dist.seed_offset)
@@ -134,6 +158,20 @@ class PlexTrainer(Trainer):
 
     def _phase(self) -> Phase:
         return phase_at(self.cfg, self.step)
+
+    def state(self) -> dict:
+        return super().state() | {"planner_sampler_rng": self.planner_gen.get_state()}
+
+    def load_state(self, state: dict) -> None:
+        super().load_state(state)
+        if "planner_sampler_rng" in state:
+            self.planner_gen = torch.Generator()
+            self.planner_gen.set_state(state["planner_sampler_rng"])
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown()
+        super().close()
 
     def _make_driver(self) -> None:
         """The training worlds (on ``--warmup-scenes`` in a warm-up that has them) and the
@@ -246,9 +284,15 @@ class PlexTrainer(Trainer):
         ent = self.ppo.ent_coef if self.cfg.planner_entropy_coef is None else self.cfg.planner_entropy_coef
         ppo = dataclasses.replace(self.ppo, num_minibatches=self.cfg.planner_minibatches,
                                   target_kl=self.cfg.planner_target_kl, ent_coef=ent)
-        stats = ppo_update(self.planner, buf, self.opts["planner"], ppo, self.gen)
+        stats = ppo_update(self.planner, buf, self.opts["planner"], ppo, self.planner_gen)
         self.updates["planner"] += 1
         return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": m}
+
+    def _learn_planner_step(self, update: bool, imitate: bool) -> dict:
+        """The planner's learning after an executor rollout: its PPO update (once N_PL
+        decisions per world have closed), then its imitation steps (in that phase)."""
+        metrics = self._update_planner() if update else {}
+        return metrics | (self._imitate() if imitate else {})
 
     def _imitate(self) -> dict:
         """Imitation steps of the planner (after every executor rollout of the phase) on
@@ -256,7 +300,7 @@ class PlexTrainer(Trainer):
         decisions, on the planner's optimiser."""
         nll = []
         for _ in range(self.cfg.imitation_minibatches):
-            obs, stop, subgoal = self.imitation.sample(IMITATION_BATCH, self.gen)
+            obs, stop, subgoal = self.imitation.sample(IMITATION_BATCH, self.planner_gen)
             loss = self.planner.imitation_loss(obs, stop.to(self.device), subgoal.to(self.device)).mean()
             self.opts["planner"].zero_grad()
             loss.backward()
@@ -333,6 +377,11 @@ class PlexTrainer(Trainer):
                 clock.timing["sim"] += sim
             t4 = time.perf_counter()
             metrics = {"phase": PHASES.index(self.phase.name)}
+            # the planner's learning of this iteration, started first (on the second thread
+            # when there is one); the all_true checks are collectives, so they stay here
+            update_pl = learn_pl and self._planner_ready()
+            imitate = self.phase.name == "planner-imitation" and distributed.all_true(len(self.imitation) > 0)
+            planner = (self.pool.submit if self.pool is not None else _call)(self._learn_planner_step, update_pl, imitate)
             if learn_ex:
                 # V(o_T) for worlds still inside a turn (their memory continues)
                 rows = np.flatnonzero(drv.turn != PLANNER)
@@ -345,10 +394,7 @@ class PlexTrainer(Trainer):
             self.updates["executor"] += 1
             if self.executor_success:
                 metrics["metrics/executor_success"] = float(np.mean(self.executor_success))
-            if learn_pl and self._planner_ready():
-                metrics |= self._update_planner()
-            if self.phase.name == "planner-imitation" and distributed.all_true(len(self.imitation) > 0):
-                metrics |= self._imitate()
+            metrics |= planner.result()
             clock.timing["update"] += time.perf_counter() - t4
             self._end_of_update(self.updates["executor"], metrics, clock)
             if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
