@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import torch
 from torch import nn
@@ -181,14 +182,26 @@ def bellman(cost: torch.Tensor, sources: torch.Tensor, iterations: int, grad_ite
     """(B, H, W) distances to the nearest ``sources`` cell (B, H, W) bool after ``iterations``
     Bellman updates over 8 neighbours: a path pays ``cost`` for each of its cells but the
     source (sqrt 2 x the largest cost of the cell and the two beside the step, for a diagonal
-    step); cells not reached hold 1e4. Gradients flow through the last ``grad_iterations`` updates."""
+    step); cells not reached hold 1e4. Gradients flow through the last ``grad_iterations`` updates.
+
+    On the CPU the updates and their gradient run as compiled loops (:class:`_BellmanCPU`);
+    elsewhere as the tensor operations of :func:`bellman_reference`, which they reproduce:
+    the same distances bit for bit, and the same gradient (torch's rule for ``minimum`` and
+    ``maximum``: a tie splits the gradient in halves) up to the order of float additions."""
+    if cost.device.type != "cpu":
+        return bellman_reference(cost, sources, iterations, grad_iterations)
+    return _BellmanCPU.apply(cost.float(), sources, iterations, grad_iterations if cost.requires_grad else 0)
+
+
+def bellman_reference(cost: torch.Tensor, sources: torch.Tensor, iterations: int, grad_iterations: int) -> torch.Tensor:
+    """:func:`bellman` as tensor operations (any device; autograd computes the gradient)."""
     B, h, w = cost.shape
-    big = 1e4
+    big = BELLMAN_UNREACHED
     cp = F.pad(cost, (1, 1, 1, 1), value=big)
     sq2 = math.sqrt(2.0)
     diag = {(da, db): sq2 * torch.maximum(cost, torch.maximum(cp[:, 1 + da:1 + da + h, 1:w + 1],
                                                              cp[:, 1:h + 1, 1 + db:1 + db + w]))
-            for da in (-1, 1) for db in (-1, 1)}
+            for da, db in DIAGONALS}
     d = torch.where(sources, 0.0, big)
 
     def update(d):
@@ -206,6 +219,168 @@ def bellman(cost: torch.Tensor, sources: torch.Tensor, iterations: int, grad_ite
     for _ in range(grad_iterations):
         d = update(d)
     return d
+
+
+BELLMAN_UNREACHED = 1e4  # the distance of cells no path has reached (and of the map's outside)
+DIAGONALS = ((-1, -1), (-1, 1), (1, -1), (1, 1))  # (row, column) steps, in the order the update takes them
+
+
+class _BellmanCPU(torch.autograd.Function):
+    """:func:`bellman` on the CPU: the updates in :func:`_bellman_forward`, the gradient in
+    :func:`_bellman_backward` (replaying the last ``grad_iterations`` updates from the
+    distances saved before each)."""
+
+    @staticmethod
+    def forward(ctx, cost, sources, iterations, grad_iterations):
+        c = cost.detach().contiguous().numpy()
+        src = sources.contiguous().numpy()
+        out = np.empty_like(c)
+        saved = np.empty((grad_iterations,) + c.shape, np.float32)
+        _bellman_forward(c, src, iterations, out, saved)
+        ctx.save_for_backward(cost, sources)
+        ctx.saved = saved
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad):
+        cost, sources = ctx.saved_tensors
+        g_cost = np.zeros(cost.shape, np.float32)
+        _bellman_backward(cost.detach().contiguous().numpy(), sources.contiguous().numpy(), ctx.saved,
+                          grad.contiguous().numpy().astype(np.float32, copy=False), g_cost)
+        return torch.from_numpy(g_cost), None, None, None
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _diag_cost(c, i, j, da, db, h, w):
+    """sqrt 2 x the largest cost of cell (i, j) and its two neighbours beside the diagonal step (da, db)."""
+    a = c[i + da, j] if 0 <= i + da < h else np.float32(BELLMAN_UNREACHED)
+    b = c[i, j + db] if 0 <= j + db < w else np.float32(BELLMAN_UNREACHED)
+    return np.float32(math.sqrt(2.0)) * max(c[i, j], max(a, b))
+
+
+@numba.njit(cache=True, nogil=True)
+def _bellman_forward(cost, sources, iterations, out, saved):
+    """``iterations`` updates of every map into ``out``; the distances before each of the last
+    ``len(saved)`` updates into ``saved``. Same float operations as :func:`bellman_reference`."""
+    B, h, w = cost.shape
+    big = np.float32(BELLMAN_UNREACHED)
+    n_saved = saved.shape[0]
+    p = np.full((h + 2, w + 2), big, np.float32)
+    cd = np.empty((4, h, w), np.float32)
+    for b in range(B):
+        c, d, src = cost[b], out[b], sources[b]
+        for k in range(4):
+            da, db = (-1 if k < 2 else 1), (-1 if k % 2 == 0 else 1)
+            for i in range(h):
+                for j in range(w):
+                    cd[k, i, j] = _diag_cost(c, i, j, da, db, h, w)
+        for i in range(h):
+            for j in range(w):
+                d[i, j] = np.float32(0.0) if src[i, j] else big
+        for it in range(iterations):
+            if it >= iterations - n_saved:
+                saved[it - (iterations - n_saved), b] = d
+            p[1:h + 1, 1:w + 1] = d
+            for i in range(h):
+                for j in range(w):
+                    if src[i, j]:
+                        continue
+                    best = min(min(p[i, j + 1], p[i + 2, j + 1]), min(p[i + 1, j], p[i + 1, j + 2])) + c[i, j]
+                    best = min(best, p[i, j] + cd[0, i, j])
+                    best = min(best, p[i, j + 2] + cd[1, i, j])
+                    best = min(best, p[i + 2, j] + cd[2, i, j])
+                    best = min(best, p[i + 2, j + 2] + cd[3, i, j])
+                    d[i, j] = min(p[i + 1, j + 1], best)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _min_grad(x, y, g):
+    """Gradients of min(x, y) for x and y (torch's ``minimum``: a tie gives each half)."""
+    if x < y:
+        return g, np.float32(0.0)
+    if x > y:
+        return np.float32(0.0), g
+    return g / np.float32(2.0), g / np.float32(2.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _bellman_backward(cost, sources, saved, grad, g_cost):
+    """The gradient of the distances after the last ``len(saved)`` updates (``grad``) with
+    respect to ``cost``, into ``g_cost``: each update replayed in reverse from the distances
+    before it, then the diagonal step costs."""
+    B, h, w = cost.shape
+    big = np.float32(BELLMAN_UNREACHED)
+    n_saved = saved.shape[0]
+    p = np.full((h + 2, w + 2), big, np.float32)
+    g_p = np.zeros((h + 2, w + 2), np.float32)
+    g_d = np.zeros((h, w), np.float32)
+    cd = np.empty((4, h, w), np.float32)
+    g_cd = np.zeros((4, h, w), np.float32)
+    t = np.empty(4, np.float32)
+    nb = np.empty(4, np.float32)
+    bs = np.empty(5, np.float32)  # the running minimum through the straight and diagonal steps
+    for b in range(B):
+        c, src, gc = cost[b], sources[b], g_cost[b]
+        for k in range(4):
+            da, db = (-1 if k < 2 else 1), (-1 if k % 2 == 0 else 1)
+            for i in range(h):
+                for j in range(w):
+                    cd[k, i, j] = _diag_cost(c, i, j, da, db, h, w)
+        g_cd[:] = 0.0
+        g_d[:] = grad[b]
+        for it in range(n_saved - 1, -1, -1):
+            p[1:h + 1, 1:w + 1] = saved[it, b]
+            g_p[:] = 0.0
+            for i in range(h):
+                for j in range(w):
+                    g = g_d[i, j]
+                    g_d[i, j] = 0.0
+                    if src[i, j] or g == 0.0:
+                        continue
+                    # forward replay: straight step, then the four diagonals in order
+                    m1 = min(p[i, j + 1], p[i + 2, j + 1])
+                    m2 = min(p[i + 1, j], p[i + 1, j + 2])
+                    b0 = min(m1, m2) + c[i, j]
+                    nb[0], nb[1], nb[2], nb[3] = p[i, j], p[i, j + 2], p[i + 2, j], p[i + 2, j + 2]
+                    bs[0] = b0
+                    for k in range(4):
+                        t[k] = nb[k] + cd[k, i, j]
+                        bs[k + 1] = min(bs[k], t[k])
+                    g_old, g_best = _min_grad(p[i + 1, j + 1], bs[4], g)
+                    g_d[i, j] += g_old  # this cell's own distance before the update (read below)
+                    for k in range(3, -1, -1):
+                        g_best, g_t = _min_grad(bs[k], t[k], g_best)
+                        g_cd[k, i, j] += g_t
+                        da, db = (-1 if k < 2 else 1), (-1 if k % 2 == 0 else 1)
+                        g_p[i + 1 + da, j + 1 + db] += g_t
+                    gc[i, j] += g_best
+                    g_m1, g_m2 = _min_grad(m1, m2, g_best)
+                    gu, gdn = _min_grad(p[i, j + 1], p[i + 2, j + 1], g_m1)
+                    gl, gr = _min_grad(p[i + 1, j], p[i + 1, j + 2], g_m2)
+                    g_p[i, j + 1] += gu
+                    g_p[i + 2, j + 1] += gdn
+                    g_p[i + 1, j] += gl
+                    g_p[i + 1, j + 2] += gr
+            for i in range(h):
+                for j in range(w):
+                    g_d[i, j] += g_p[i + 1, j + 1]
+        # the diagonal step costs: sqrt 2 x max(cost, max(cost beside, cost beside))
+        for k in range(4):
+            da, db = (-1 if k < 2 else 1), (-1 if k % 2 == 0 else 1)
+            for i in range(h):
+                for j in range(w):
+                    g = g_cd[k, i, j] * np.float32(math.sqrt(2.0))
+                    if g == 0.0:
+                        continue
+                    a = c[i + da, j] if 0 <= i + da < h else big
+                    bb = c[i, j + db] if 0 <= j + db < w else big
+                    g_c, g_m = _min_grad(-c[i, j], -max(a, bb), g)  # max(x, y) = -min(-x, -y)
+                    gc[i, j] += g_c
+                    g_a, g_b = _min_grad(-a, -bb, g_m)
+                    if 0 <= i + da < h:
+                        gc[i + da, j] += g_a
+                    if 0 <= j + db < w:
+                        gc[i, j + db] += g_b
 
 
 class Planner(nn.Module):
