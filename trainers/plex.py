@@ -8,14 +8,16 @@ PLEX runs through the rollout driver (:mod:`.driver`), per iteration:
 2. *One executor step* in all N worlds at once (``PlexDriver.step``). The executor's memory
    restarts at the first step of every turn (the env's ``executor_memory_restart`` hint).
 3. After ``rollout_steps`` executor steps: a PPO update of the executor on its own rewards
-   (gamma_EX per executor step). The planner's learning of the same iteration (step 4 and
-   its imitation steps) runs on a second thread beside it (``parallel_updates``): the two
-   agents share no parameters, and each draws its minibatches from its own generator. An executor turn ends at its STOP (terminal), at its
+   (gamma_EX per executor step). An executor turn ends at its STOP (terminal), at its
    N_EX-th action (a truncation: bootstrap from V of the observation after it, with the
    memory it had) or at the episode's end.
 4. Each planner decision is one transition whose reward is everything the planner earned
    until its next decision (gamma_PL per decision). Once N_PL decisions per world have
    completed, a PPO update of the planner.
+
+The planner's learning of an iteration (its update and imitation steps) runs on a second
+thread beside the executor's update (``parallel_updates``): the two agents share no
+parameters, and each draws its minibatches from its own generator.
 
 Either agent can be a stand-in that is not trained (``--planner random|oracle``,
 ``--executor oracle``: the shortest-path oracles use ground truth). A run can begin with
@@ -35,8 +37,8 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,20 +123,6 @@ class ImitationSet:
         obs = {k[4:]: v[idx].float() if v.dtype == torch.float16 else v[idx]
                for k, v in self.data.items() if k.startswith("obs/")}
         return obs, self.data["stop"][idx], self.data["subgoal"][idx]
-
-
-class _Done:
-    """A finished call's result, read like a future's."""
-
-    def __init__(self, value):
-        self.value = value
-
-    def result(self):
-        return self.value
-
-
-def _call(fn, *args) -> _Done:
-    return _Done(fn(*args))
 
 
 class PlexTrainer(Trainer):
@@ -377,11 +365,11 @@ class PlexTrainer(Trainer):
                 clock.timing["sim"] += sim
             t4 = time.perf_counter()
             metrics = {"phase": PHASES.index(self.phase.name)}
-            # the planner's learning of this iteration, started first (on the second thread
-            # when there is one); the all_true checks are collectives, so they stay here
+            # the planner's learning of this iteration: on the second thread, if there is one,
+            # from here on (the all_true checks are collectives, so they stay on this thread)
             update_pl = learn_pl and self._planner_ready()
             imitate = self.phase.name == "planner-imitation" and distributed.all_true(len(self.imitation) > 0)
-            planner = (self.pool.submit if self.pool is not None else _call)(self._learn_planner_step, update_pl, imitate)
+            job = self.pool.submit(self._learn_planner_step, update_pl, imitate) if self.pool is not None else None
             if learn_ex:
                 # V(o_T) for worlds still inside a turn (their memory continues)
                 rows = np.flatnonzero(drv.turn != PLANNER)
@@ -394,7 +382,7 @@ class PlexTrainer(Trainer):
             self.updates["executor"] += 1
             if self.executor_success:
                 metrics["metrics/executor_success"] = float(np.mean(self.executor_success))
-            metrics |= planner.result()
+            metrics |= job.result() if job is not None else self._learn_planner_step(update_pl, imitate)
             clock.timing["update"] += time.perf_counter() - t4
             self._end_of_update(self.updates["executor"], metrics, clock)
             if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
