@@ -98,7 +98,7 @@ class ValueIteration(nn.Module):
       the step, so paths do not cut a wall's corner). The goal is its cell, or, beyond the
       map, the cell where the straight line to it leaves the map. Gradients flow through
       the last ``grad_iterations`` updates only: the cost map is local, so that is where it
-      learns, and backpropagating through every update costs 20 times the forward pass.
+      learns (:func:`bellman`).
     - Read-out (:meth:`forward`): the distance field within ``SUBGOAL_REACH`` of the agent
       relative to its smallest value there, and a sub-goal: the cell nearest the goal among
       those the agent reaches within that distance (the goal's exact position stands in for
