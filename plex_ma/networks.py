@@ -184,13 +184,18 @@ def bellman(cost: torch.Tensor, sources: torch.Tensor, iterations: int, grad_ite
     source (sqrt 2 x the largest cost of the cell and the two beside the step, for a diagonal
     step); cells not reached hold 1e4. Gradients flow through the last ``grad_iterations`` updates.
 
-    On the CPU the updates and their gradient run as compiled loops (:class:`_BellmanCPU`);
-    elsewhere as the tensor operations of :func:`bellman_reference`, which they reproduce:
-    the same distances bit for bit, and the same gradient (torch's rule for ``minimum`` and
-    ``maximum``: a tie splits the gradient in halves) up to the order of float additions."""
-    if cost.device.type != "cpu":
+    On the CPU, for float32 costs, the updates and their gradient run as compiled loops
+    (:class:`_BellmanCPU`); otherwise as the tensor operations of :func:`bellman_reference`,
+    which the loops reproduce: the same distances bit for bit, and the same gradient
+    (torch's rule for ``minimum`` and ``maximum``: a tie splits the gradient in halves) up to
+    the order of float additions. Costs must not be NaN (the loops would not pass a NaN on)."""
+    if not 0 <= grad_iterations <= iterations:
+        raise ValueError(f"bellman: grad_iterations={grad_iterations} must lie in [0, iterations={iterations}]")
+    if cost.device.type != "cpu" or cost.dtype != torch.float32:
         return bellman_reference(cost, sources, iterations, grad_iterations)
-    return _BellmanCPU.apply(cost.float(), sources, iterations, grad_iterations if cost.requires_grad else 0)
+    if grad_iterations == 0 or not (torch.is_grad_enabled() and cost.requires_grad):
+        return _BellmanCPU.distances(cost, sources, iterations, 0)[0]
+    return _BellmanCPU.apply(cost, sources, iterations, grad_iterations)
 
 
 def bellman_reference(cost: torch.Tensor, sources: torch.Tensor, iterations: int, grad_iterations: int) -> torch.Tensor:
@@ -231,17 +236,22 @@ class _BellmanCPU(torch.autograd.Function):
     distances saved before each)."""
 
     @staticmethod
-    def forward(ctx, cost, sources, iterations, grad_iterations):
+    def distances(cost, sources, iterations, grad_iterations) -> tuple[torch.Tensor, np.ndarray]:
+        """The distances, and those before each of the last ``grad_iterations`` updates."""
         c = cost.detach().contiguous().numpy()
-        src = sources.contiguous().numpy()
         out = np.empty_like(c)
         saved = np.empty((grad_iterations,) + c.shape, np.float32)
-        _bellman_forward(c, src, iterations, out, saved)
-        ctx.save_for_backward(cost, sources)
-        ctx.saved = saved
-        return torch.from_numpy(out)
+        _bellman_forward(c, sources.contiguous().numpy(), iterations, out, saved)
+        return torch.from_numpy(out), saved
 
     @staticmethod
+    def forward(ctx, cost, sources, iterations, grad_iterations):
+        d, ctx.saved = _BellmanCPU.distances(cost, sources, iterations, grad_iterations)
+        ctx.save_for_backward(cost, sources)
+        return d
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
         cost, sources = ctx.saved_tensors
         g_cost = np.zeros(cost.shape, np.float32)

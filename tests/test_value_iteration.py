@@ -4,6 +4,7 @@ on synthetic maps, where its gradients go, and the stop-gradient with it in the 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from plex_ma.envs.map_planner import _NEIGHBOURS, _distances
@@ -31,21 +32,26 @@ def test_bellman_matches_dijkstra_on_a_random_grid():
 
 def test_compiled_bellman_matches_the_tensor_reference():
     """The CPU path (compiled loops, hand-written gradient) against the tensor operations with
-    autograd, on a batch of maps with walls, the map's edge and unreached cells (where ties
-    split torch's gradients in halves): the same distances bit for bit, the same gradient up
-    to float rounding, for several gradient windows."""
+    autograd, on a batch of maps with walls, the map's edge and unreached cells: the same
+    distances bit for bit, the same gradient up to float rounding, for several gradient
+    windows; smooth costs, and whole-number costs (1 on free cells, 100 on walls), where ties
+    are everywhere and torch's gradients split in halves."""
     gen = torch.Generator().manual_seed(0)
     B, s = 6, 32
     walls = (torch.rand(B, s, s, generator=gen) > 0.8).float()
-    raw = 96 * walls - 4 + torch.randn(B, s, s, generator=gen)
+    smooth = 96 * walls - 4 + torch.randn(B, s, s, generator=gen)
     src = torch.zeros(B, s, s, dtype=torch.bool)
     src[torch.arange(B), torch.randint(s, (B,), generator=gen), torch.randint(s, (B,), generator=gen)] = True
     upstream = torch.randn(B, s, s, generator=gen)
-    for iterations, grad_iterations in ((40, 8), (12, 12), (30, 0)):
+    cases = [(smooth, lambda x: 1 + torch.nn.functional.softplus(x), 40, 8),
+             (smooth, lambda x: 1 + torch.nn.functional.softplus(x), 12, 12),
+             (smooth, lambda x: 1 + torch.nn.functional.softplus(x), 30, 0),
+             (1 + 99 * walls, lambda x: x * 1.0, 40, 8)]
+    for raw, to_cost, iterations, grad_iterations in cases:
         out = {}
         for name, fn in (("reference", bellman_reference), ("compiled", bellman)):
             x = raw.clone().requires_grad_()
-            d = fn(1 + torch.nn.functional.softplus(x), src, iterations, grad_iterations)
+            d = fn(to_cost(x), src, iterations, grad_iterations)
             if grad_iterations:
                 (d * upstream * (d < 1e4)).sum().backward()
             out[name] = d.detach(), x.grad
@@ -55,6 +61,8 @@ def test_compiled_bellman_matches_the_tensor_reference():
             g_ref, g = out["reference"][1], out["compiled"][1]
             assert g_ref.abs().max() > 0.1
             torch.testing.assert_close(g, g_ref, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="grad_iterations"):
+        bellman(smooth, src, 4, 5)
 
 
 def _subgoal(obstacles: np.ndarray, goal: tuple[float, float]) -> np.ndarray:

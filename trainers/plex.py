@@ -16,8 +16,10 @@ PLEX runs through the rollout driver (:mod:`.driver`), per iteration:
    completed, a PPO update of the planner.
 
 The planner's learning of an iteration (its update and imitation steps) runs on a second
-thread beside the executor's update (``parallel_updates``): the two agents share no
-parameters, and each draws its minibatches from its own generator.
+thread beside the executor's update (``parallel_updates``, single-process runs): the two
+agents share no parameters, each draws its minibatches from its own generator, and both
+threads run the same number of torch threads, so the networks are the same, bit for bit,
+as with the updates one after the other.
 
 Either agent can be a stand-in that is not trained (``--planner random|oracle``,
 ``--executor oracle``: the shortest-path oracles use ground truth). A run can begin with
@@ -131,12 +133,13 @@ class PlexTrainer(Trainer):
     def __init__(self, cfg: TrainConfig, log: bool = True, record: Callable[[Trainer], object] | None = None):
         self.planner_gen: torch.Generator | None = None  # the planner's minibatches and imitation samples
         super().__init__(cfg, log, record)
-        if self.planner_gen is None:  # not resumed: a seed drawn from the executor's sampler (seeded per worker)
+        if self.planner_gen is None or not self.dist.is_main:
+            # a fresh run, or a worker besides rank 0 (whose sampler sync_start seeded apart):
+            # a seed drawn from the executor's sampler
             self.planner_gen = torch.Generator().manual_seed(int(torch.randint(2**62, (1,), generator=self.gen)))
         # the planner learns on a second thread beside the executor's update (single process:
         # under torchrun both updates all-reduce over one process group, so they take turns)
-        self.pool = (ThreadPoolExecutor(1, initializer=self._set_threads)
-                     if cfg.parallel_updates and self.dist.world_size == 1 else None)
+        self.pool = ThreadPoolExecutor(1) if cfg.parallel_updates and self.dist.world_size == 1 else None
         self.planner: Planner = self.nets["planner"]
         self.executor: Executor = self.nets["executor"]
         self.np_rng = np.random.default_rng(cfg.seed + self.dist.seed_offset)
@@ -276,9 +279,13 @@ class PlexTrainer(Trainer):
         self.updates["planner"] += 1
         return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": m}
 
-    def _learn_planner_step(self, update: bool, imitate: bool) -> dict:
+    def _learn_planner_step(self, update: bool, imitate: bool, threads: int) -> dict:
         """The planner's learning after an executor rollout: its PPO update (once N_PL
-        decisions per world have closed), then its imitation steps (in that phase)."""
+        decisions per world have closed), then its imitation steps (in that phase), on
+        ``threads`` torch threads (the main thread's count: CPU reductions split their work
+        by it, so both paths give the same bits)."""
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
         metrics = self._update_planner() if update else {}
         return metrics | (self._imitate() if imitate else {})
 
@@ -369,7 +376,8 @@ class PlexTrainer(Trainer):
             # from here on (the all_true checks are collectives, so they stay on this thread)
             update_pl = learn_pl and self._planner_ready()
             imitate = self.phase.name == "planner-imitation" and distributed.all_true(len(self.imitation) > 0)
-            job = self.pool.submit(self._learn_planner_step, update_pl, imitate) if self.pool is not None else None
+            args = (update_pl, imitate, torch.get_num_threads())
+            job = self.pool.submit(self._learn_planner_step, *args) if self.pool is not None else None
             if learn_ex:
                 # V(o_T) for worlds still inside a turn (their memory continues)
                 rows = np.flatnonzero(drv.turn != PLANNER)
@@ -382,7 +390,7 @@ class PlexTrainer(Trainer):
             self.updates["executor"] += 1
             if self.executor_success:
                 metrics["metrics/executor_success"] = float(np.mean(self.executor_success))
-            metrics |= job.result() if job is not None else self._learn_planner_step(update_pl, imitate)
+            metrics |= job.result() if job is not None else self._learn_planner_step(*args)
             clock.timing["update"] += time.perf_counter() - t4
             self._end_of_update(self.updates["executor"], metrics, clock)
             if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
