@@ -463,6 +463,8 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
             "resolution": cfg.env.resolution, "steps": steps, "steps_per_second": result["perf/fps"],
             "share_sim": result["perf/share_sim"], "share_inference": result["perf/share_inference"],
             "share_update": result["perf/share_update"], "share_other": result["perf/share_other"],
+            # PLEX: each agent's learning inside the update (side by side, so they may overlap)
+            "share_learn": {k[len("perf/share_learn_"):]: v for k, v in result.items() if k.startswith("perf/share_learn_")},
             "model_flops_per_step": flops,
             "matmul_gflops": peak, "update_gflops": achieved, "update_efficiency": achieved / peak,
             "torch_threads": torch.get_num_threads(), **describe(trainer.device), "overrides": dict(overrides or {})}

@@ -38,6 +38,11 @@ def test_smoke_training_every_method(tmp_path, method, eli):
     lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     keys = set().union(*lines)
     assert "perf/fps" in keys
+    if method.startswith("plex"):  # each agent's learning, inside the update's share of the wall time
+        for x in lines:
+            for agent in ("executor", "planner"):
+                assert 0.0 <= x[f"perf/share_learn_{agent}"] <= x["perf/share_update"] + 1e-9
+        assert lines[-1]["perf/share_learn_executor"] > 0.0
     if os.path.exists("/proc/self/statm"):  # resident memory, for soak checks (Linux)
         assert all(50 < x["perf/rss_mib"] < 64_000 for x in lines if "perf/fps" in x)
     prefix = "learner/executor_" if method.startswith("plex") else "learner/"
@@ -162,7 +167,9 @@ def test_checkpoint_is_loaded_with_weights_only(tmp_path):
 
 
 def test_planner_update_leaves_executor_untouched(tmp_path):
-    cfg = tiny(tmp_path, total_steps=160, n_pl=1)
+    # the two updates one after the other, so that nothing but the planner's update runs
+    # inside the spy (the parallel path gives the same networks: see the test above)
+    cfg = tiny(tmp_path, total_steps=160, n_pl=1, parallel_updates=False)
     t = PlexTrainer(cfg, log=False)
     before = {k: v.clone() for k, v in t.executor.state_dict().items()}
     calls = []

@@ -102,6 +102,9 @@ class RunClock:
     start_step: int
     last_log: dict = field(default_factory=dict)
     timing: dict = field(default_factory=lambda: {"sim": 0.0, "inference": 0.0, "update": 0.0})
+    # seconds each agent's learning took inside the updates (PLEX: they run side by side, so
+    # these overlap and are not parts of the wall time)
+    learning: dict = field(default_factory=dict)
 
 
 class Trainer:
@@ -247,6 +250,8 @@ class Trainer:
         for k, v in timing.items():
             metrics[f"perf/share_{k}"] = v / wall
         metrics["perf/share_other"] = max(0.0, 1.0 - sum(timing.values()) / wall)
+        for k, v in clock.learning.items():
+            metrics[f"perf/share_learn_{k}"] = v / wall
         metrics["perf/rss_mib"] = resident_memory_mib()  # None (not logged) off Linux
         if n_updates % cfg.log_interval == 0:
             self.log(metrics)

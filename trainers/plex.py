@@ -286,8 +286,10 @@ class PlexTrainer(Trainer):
         by it, so both paths give the same bits)."""
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
+        t0 = time.perf_counter()
         metrics = self._update_planner() if update else {}
-        return metrics | (self._imitate() if imitate else {})
+        metrics |= self._imitate() if imitate else {}
+        return metrics | {"seconds": time.perf_counter() - t0}
 
     def _imitate(self) -> dict:
         """Imitation steps of the planner (after every executor rollout of the phase) on
@@ -378,6 +380,7 @@ class PlexTrainer(Trainer):
             imitate = self.phase.name == "planner-imitation" and distributed.all_true(len(self.imitation) > 0)
             args = (update_pl, imitate, torch.get_num_threads())
             job = self.pool.submit(self._learn_planner_step, *args) if self.pool is not None else None
+            t5 = time.perf_counter()
             if learn_ex:
                 # V(o_T) for worlds still inside a turn (their memory continues)
                 rows = np.flatnonzero(drv.turn != PLANNER)
@@ -388,9 +391,12 @@ class PlexTrainer(Trainer):
                 metrics |= {f"learner/executor_{k}": v for k, v in
                             ppo_update(self.executor, buf, self.opts["executor"], self.ppo, self.gen).items()}
             self.updates["executor"] += 1
+            clock.learning["executor"] = clock.learning.get("executor", 0.0) + time.perf_counter() - t5
             if self.executor_success:
                 metrics["metrics/executor_success"] = float(np.mean(self.executor_success))
-            metrics |= job.result() if job is not None else self._learn_planner_step(*args)
+            planner_metrics = job.result() if job is not None else self._learn_planner_step(*args)
+            clock.learning["planner"] = clock.learning.get("planner", 0.0) + planner_metrics.pop("seconds")
+            metrics |= planner_metrics
             clock.timing["update"] += time.perf_counter() - t4
             self._end_of_update(self.updates["executor"], metrics, clock)
             if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
