@@ -268,6 +268,23 @@ def _diag_cost(c, i, j, da, db, h, w):
     return np.float32(math.sqrt(2.0)) * max(c[i, j], max(a, b))
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _diagonal(k):
+    """The (row, column) step of diagonal ``k``, in the order of ``DIAGONALS``."""
+    return (-1 if k < 2 else 1), (-1 if k % 2 == 0 else 1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _diag_costs(c, cd):
+    """Every cell's four diagonal step costs (:func:`_diag_cost`) into ``cd`` (4, H, W)."""
+    h, w = c.shape
+    for k in range(4):
+        da, db = _diagonal(k)
+        for i in range(h):
+            for j in range(w):
+                cd[k, i, j] = _diag_cost(c, i, j, da, db, h, w)
+
+
 @numba.njit(cache=True, nogil=True)
 def _bellman_forward(cost, sources, iterations, out, saved):
     """``iterations`` updates of every map into ``out``; the distances before each of the last
@@ -279,11 +296,7 @@ def _bellman_forward(cost, sources, iterations, out, saved):
     cd = np.empty((4, h, w), np.float32)
     for b in range(B):
         c, d, src = cost[b], out[b], sources[b]
-        for k in range(4):
-            da, db = (-1 if k < 2 else 1), (-1 if k % 2 == 0 else 1)
-            for i in range(h):
-                for j in range(w):
-                    cd[k, i, j] = _diag_cost(c, i, j, da, db, h, w)
+        _diag_costs(c, cd)
         for i in range(h):
             for j in range(w):
                 d[i, j] = np.float32(0.0) if src[i, j] else big
@@ -331,11 +344,7 @@ def _bellman_backward(cost, sources, saved, grad, g_cost):
     bs = np.empty(5, np.float32)  # the running minimum through the straight and diagonal steps
     for b in range(B):
         c, src, gc = cost[b], sources[b], g_cost[b]
-        for k in range(4):
-            da, db = (-1 if k < 2 else 1), (-1 if k % 2 == 0 else 1)
-            for i in range(h):
-                for j in range(w):
-                    cd[k, i, j] = _diag_cost(c, i, j, da, db, h, w)
+        _diag_costs(c, cd)
         g_cd[:] = 0.0
         g_d[:] = grad[b]
         for it in range(n_saved - 1, -1, -1):
@@ -361,7 +370,7 @@ def _bellman_backward(cost, sources, saved, grad, g_cost):
                     for k in range(3, -1, -1):
                         g_best, g_t = _min_grad(bs[k], t[k], g_best)
                         g_cd[k, i, j] += g_t
-                        da, db = (-1 if k < 2 else 1), (-1 if k % 2 == 0 else 1)
+                        da, db = _diagonal(k)
                         g_p[i + 1 + da, j + 1 + db] += g_t
                     gc[i, j] += g_best
                     g_m1, g_m2 = _min_grad(m1, m2, g_best)
@@ -376,7 +385,7 @@ def _bellman_backward(cost, sources, saved, grad, g_cost):
                     g_d[i, j] += g_p[i + 1, j + 1]
         # the diagonal step costs: sqrt 2 x max(cost, max(cost beside, cost beside))
         for k in range(4):
-            da, db = (-1 if k < 2 else 1), (-1 if k % 2 == 0 else 1)
+            da, db = _diagonal(k)
             for i in range(h):
                 for j in range(w):
                     g = g_cd[k, i, j] * np.float32(math.sqrt(2.0))
