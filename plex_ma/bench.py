@@ -415,7 +415,8 @@ def bench_train(preset: str = "cpu", method: str = "plex-gru", steps: int = 8192
                 device: str = "auto") -> dict:
     """End-to-end training throughput of a short run (``python -m plex_ma.bench train``).
 
-    Reports steps/s, the shares of wall time in simulation, inference and the update, the
+    Reports steps/s, the shares of wall time in simulation, inference and the update (and,
+    for PLEX, each agent's learning within the update: the two run side by side), the
     models' FLOPs per step, this machine's matmul GFLOP/s with the same torch threads, and
     the update's efficiency: the update's FLOPs (3x forward per sample per epoch) over its
     wall time, divided by the matmul figure. ``overrides`` sets further TrainConfig fields
