@@ -279,17 +279,17 @@ class PlexTrainer(Trainer):
         self.updates["planner"] += 1
         return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": m}
 
-    def _learn_planner_step(self, update: bool, imitate: bool, threads: int) -> dict:
+    def _learn_planner_step(self, update: bool, imitate: bool, threads: int) -> tuple[dict, float]:
         """The planner's learning after an executor rollout: its PPO update (once N_PL
         decisions per world have closed), then its imitation steps (in that phase), on
         ``threads`` torch threads (the main thread's count: CPU reductions split their work
-        by it, so both paths give the same bits)."""
+        by it, so both paths give the same bits). Returns its metrics and seconds."""
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
         t0 = time.perf_counter()
         metrics = self._update_planner() if update else {}
         metrics |= self._imitate() if imitate else {}
-        return metrics | {"seconds": time.perf_counter() - t0}
+        return metrics, time.perf_counter() - t0
 
     def _imitate(self) -> dict:
         """Imitation steps of the planner (after every executor rollout of the phase) on
@@ -394,8 +394,8 @@ class PlexTrainer(Trainer):
             clock.learning["executor"] = clock.learning.get("executor", 0.0) + time.perf_counter() - t5
             if self.executor_success:
                 metrics["metrics/executor_success"] = float(np.mean(self.executor_success))
-            planner_metrics = job.result() if job is not None else self._learn_planner_step(*args)
-            clock.learning["planner"] = clock.learning.get("planner", 0.0) + planner_metrics.pop("seconds")
+            planner_metrics, seconds = job.result() if job is not None else self._learn_planner_step(*args)
+            clock.learning["planner"] = clock.learning.get("planner", 0.0) + seconds
             metrics |= planner_metrics
             clock.timing["update"] += time.perf_counter() - t4
             self._end_of_update(self.updates["executor"], metrics, clock)
