@@ -208,9 +208,10 @@ PRESETS: dict[str, dict] = {
 # cpu: 32 worlds x 32 steps (the same 1,024 per executor update) at 48 px, one PPO epoch
 # of each agent and one imitation minibatch per rollout. With the planner learning, training
 # runs 3.0-3.7x as fast as with the shared settings (16 worlds x 64 steps, 64 px, 4 epochs,
-# 8 imitation minibatches; 1,675-1,902 steps/s in bench train); at 1,024,000 steps it reads procgen test greedy
-# 0.876 / 0.848 / 0.820 for seeds 0-2, against 0.873 / 0.887 / 0.890 with those settings
-# (commit 7ddc927) and 0.811 for seed 1 with them and the current code (README, docs/results.md).
+# 8 imitation minibatches; 1,675-1,902 steps/s in bench train); at 1,024,000 steps it reads
+# procgen test greedy 0.876 / 0.848 / 0.820 for seeds 0-2, against 0.873 / 0.887 / 0.890
+# with those settings (commit 7ddc927) and 0.811 for seed 1 with them and the current code
+# (README, docs/results.md).
 PLEX_PRESETS: dict[str, dict] = {
     "cpu": dict(num_envs=32, rollout_steps=32, resolution=48, ppo_epochs=1, imitation_minibatches=1),
 }

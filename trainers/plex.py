@@ -111,7 +111,7 @@ class ImitationSet:
             for k, v in items.items():
                 dtype = torch.float16 if k in ("obs/ego_map", "obs/eli") else v.dtype
                 # empty, not zeros: only the first ``size`` rows are ever read, and zeroing
-                # the whole ring up front costs about 0.8 s of page faults here
+                # the whole ring up front cost about 0.8 s of page faults on a 2-core machine
                 self.data[k] = torch.empty((self.capacity,) + v.shape[1:], dtype=dtype)
         k = len(items["stop"])
         at = (self.next + torch.arange(k)) % self.capacity
