@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections import deque
+from collections import defaultdict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -104,7 +104,7 @@ class RunClock:
     timing: dict = field(default_factory=lambda: {"sim": 0.0, "inference": 0.0, "update": 0.0})
     # seconds each agent's learning took inside the updates (PLEX: they run side by side, so
     # these overlap and are not parts of the wall time)
-    learning: dict = field(default_factory=dict)
+    learning: defaultdict = field(default_factory=lambda: defaultdict(float))
 
 
 class Trainer:

@@ -393,11 +393,11 @@ class PlexTrainer(Trainer):
                 metrics |= {f"learner/executor_{k}": v for k, v in
                             ppo_update(self.executor, buf, self.opts["executor"], self.ppo, self.gen).items()}
             self.updates["executor"] += 1
-            clock.learning["executor"] = clock.learning.get("executor", 0.0) + time.perf_counter() - t5
+            clock.learning["executor"] += time.perf_counter() - t5
             if self.executor_success:
                 metrics["metrics/executor_success"] = float(np.mean(self.executor_success))
             planner_metrics, seconds = job.result() if job is not None else self._learn_planner_step(*args)
-            clock.learning["planner"] = clock.learning.get("planner", 0.0) + seconds
+            clock.learning["planner"] += seconds
             metrics |= planner_metrics
             clock.timing["update"] += time.perf_counter() - t4
             self._end_of_update(self.updates["executor"], metrics, clock)
