@@ -39,7 +39,7 @@ everything it earned during the executor's turn.
 
 | agent | on every executor action | extra |
 |---|---|---|
-| executor | decrease of geodesic distance to the sub-goal - 0.01 slack - 0.01 on collision | +1.0 for STOP within 0.5 m (geodesic) of a sub-goal that was farther than 0.5 m when it was set |
+| executor | decrease of geodesic distance to the sub-goal - 0.01 slack - 0.01 on collision (+ `executor_collision_reward`, 0 by default) | +1.0 for STOP within 0.5 m (geodesic) of a sub-goal that was farther than 0.5 m when it was set; `executor_stop_penalty` (0 by default) for a STOP farther than that |
 | planner | decrease of geodesic distance to the end goal - 0.01 slack - 0.01 on collision | +10 when its stop is a success |
 
 A sub-goal set within 0.5 m of the agent (a short or snapped proposal) earns no STOP bonus,
@@ -103,6 +103,7 @@ unchanged (`pettingzoo.test.render_test` passes headless).
 | `pose_noise` | (0.0, 0.0) | GPS+compass Gaussian noise std (m, rad) |
 | `slack_reward`, `collision_reward`, `success_reward`, `subgoal_reward` | -0.01, -0.01, 10, 1 | reward weights |
 | `success_distance`, `subgoal_radius` | 0.2, 0.5 | metres |
+| `executor_stop_penalty`, `executor_collision_reward` | 0.0, 0.0 | the executor's extra rewards for a STOP outside `subgoal_radius` and for a blocked move (each <= 0) |
 | `executor_memory_restart` | True | hint for trainers: restart the executor's memory with each sub-goal (`env.unwrapped.executor_memory_restart`) |
 | `render_mode` | None | "human" or "rgb_array" (see Rendering) |
 

@@ -15,8 +15,10 @@ Rewards written on every executor step:
 
 ==========  ==========================================================================
 executor    geodesic progress towards the sub-goal + slack + collision
-            (+ ``subgoal_reward`` when it chooses STOP within ``subgoal_radius`` of a
-            sub-goal that was farther than that when it was set)
+            (+ ``executor_collision_reward`` on a blocked move, + ``subgoal_reward``
+            when it chooses STOP within ``subgoal_radius`` of a sub-goal that was
+            farther than that when it was set, + ``executor_stop_penalty`` for a
+            STOP outside it)
 planner     geodesic progress towards the end goal + slack + collision
 ==========  ==========================================================================
 """
@@ -98,6 +100,7 @@ class PlexConfig(NavConfig):
     subgoal_reward: float = 1.0  # executor reward for a STOP within subgoal_radius of its sub-goal
     subgoal_radius: float = 0.5  # distance (m) to its sub-goal within which the executor's STOP earns subgoal_reward
     executor_stop_penalty: float = 0.0  # executor reward for a STOP farther than subgoal_radius from its sub-goal (<= 0)
+    executor_collision_reward: float = 0.0  # executor reward added on a blocked move, beside collision_reward (<= 0)
     executor_memory_restart: bool = True  # hint to trainers: restart the executor's memory with each sub-goal
 
     def validate(self) -> None:
@@ -112,6 +115,8 @@ class PlexConfig(NavConfig):
             raise ValueError(f"config subgoal_radius={self.subgoal_radius!r}: must be in (0, 5) metres")
         if not (isinstance(self.executor_stop_penalty, (int, float)) and -100 <= self.executor_stop_penalty <= 0):
             raise ValueError(f"config executor_stop_penalty={self.executor_stop_penalty!r}: must be in [-100, 0]")
+        if not (isinstance(self.executor_collision_reward, (int, float)) and -100 <= self.executor_collision_reward <= 0):
+            raise ValueError(f"config executor_collision_reward={self.executor_collision_reward!r}: must be in [-100, 0]")
 
 
 def make_config(cls, kwargs: dict):
@@ -457,6 +462,7 @@ class PlexWorlds(_Worlds):
         reached = stopped & (d_sub < cfg.subgoal_radius) & (self.subgoal_dist0[rows] >= cfg.subgoal_radius)
         ex_r += cfg.subgoal_reward * reached
         ex_r += cfg.executor_stop_penalty * (stopped & (d_sub >= cfg.subgoal_radius))
+        ex_r += cfg.executor_collision_reward * collided
         pl_r = progress_reward(d_goal_prev, sim.distance_to_goal[rows], collided, cfg)
         out.rewards[rows, EXECUTOR] += ex_r.astype(np.float32)
         out.rewards[rows, PLANNER] += pl_r.astype(np.float32)
@@ -478,16 +484,21 @@ class PlexWorlds(_Worlds):
 
 
 class PointNavWorlds(_Worlds):
-    """The flat PointNav rules (SPEC section 4) over N worlds: STOP ends the episode."""
+    """The flat PointNav rules (SPEC section 4) over N worlds: STOP ends the episode.
 
-    def __init__(self, cfg: NavConfig, num_worlds: int = 1, seed: int | None = None):
-        super().__init__(cfg, num_worlds, seed, egomap=False)
+    ``egomap``: keep each world's ego map, and add the planner's ``ego_map`` (the same as
+    :meth:`PlexWorlds.planner_obs`) to the observations (for the flat policy that reads it,
+    PPO-GRU+map); off by default, where the simulator skips the map's updates."""
+
+    def __init__(self, cfg: NavConfig, num_worlds: int = 1, seed: int | None = None, egomap: bool = False):
+        super().__init__(cfg, num_worlds, seed, egomap=egomap)
 
     @_serial_for_one_world
     def obs(self, rows) -> dict:
         rows = np.asarray(rows, np.int64).reshape(-1)
         return {"rgb": self.sim.rgb[rows].copy(), "depth": self.sim.depth[rows].copy(),
-                "pointgoal": self.goal_vector(rows)}
+                "pointgoal": self.goal_vector(rows),
+                **({"ego_map": self.sim.egomap(rows)} if self.sim.use_egomap else {})}
 
     @_serial_for_one_world
     def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

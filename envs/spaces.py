@@ -29,9 +29,13 @@ def image_spaces(resolution: int) -> dict:
     }
 
 
+def ego_map_space() -> spaces.Box:
+    return spaces.Box(0.0, 1.0, (EGO_CHANNELS, EGO_SIZE, EGO_SIZE), np.float32)
+
+
 def planner_observation_space(cfg: PlexConfig) -> spaces.Dict:
     return spaces.Dict({
-        "ego_map": spaces.Box(0.0, 1.0, (EGO_CHANNELS, EGO_SIZE, EGO_SIZE), np.float32),
+        "ego_map": ego_map_space(),
         "goal": polar_space(MAX_GOAL_DISTANCE),
         "eli": spaces.Box(-np.inf, np.inf, (ELI_DIM,), np.float32),
     })
@@ -56,5 +60,7 @@ def executor_action_space(cfg: PlexConfig) -> spaces.Dict:
     })
 
 
-def pointnav_observation_space(cfg: NavConfig) -> spaces.Dict:
-    return spaces.Dict({**image_spaces(cfg.resolution), "pointgoal": polar_space(MAX_GOAL_DISTANCE)})
+def pointnav_observation_space(cfg: NavConfig, ego_map: bool = False) -> spaces.Dict:
+    """The flat agent's observations; with ``ego_map``, also the planner's ego map."""
+    return spaces.Dict({**image_spaces(cfg.resolution), "pointgoal": polar_space(MAX_GOAL_DISTANCE),
+                        **({"ego_map": ego_map_space()} if ego_map else {})})

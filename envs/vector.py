@@ -129,13 +129,16 @@ class PointNavVectorEnv:
     After each ``step``, ``final_pose`` holds the (ended, 3) float64 x, y (m) and heading
     (rad) of the agents whose episode ended in it, taken before the autoreset, in the
     order of ``infos`` (None if none ended): the returned 5-tuple is the gymnasium one.
+
+    ``egomap=True`` adds the planner's ``ego_map`` (N, 2, 32, 32) to the observations
+    (PPO-GRU+map reads it); without it the worlds keep no ego maps.
     """
 
-    def __init__(self, num_envs: int, seed: int | None = None, **config):
+    def __init__(self, num_envs: int, seed: int | None = None, egomap: bool = False, **config):
         self.config: NavConfig = make_config(NavConfig, config)
         self.num_envs = int(num_envs)
-        self.worlds = PointNavWorlds(self.config, self.num_envs, seed)
-        self.observation_space = pointnav_observation_space(self.config)
+        self.worlds = PointNavWorlds(self.config, self.num_envs, seed, egomap=egomap)
+        self.observation_space = pointnav_observation_space(self.config, ego_map=egomap)
         self.final_pose: np.ndarray | None = None
 
     @property
@@ -145,7 +148,10 @@ class PointNavVectorEnv:
 
     def _obs(self) -> dict:
         w = self.worlds
-        return {"rgb": w.sim.rgb, "depth": w.sim.depth, "pointgoal": w.goal_vector(np.arange(self.num_envs))}
+        obs = {"rgb": w.sim.rgb, "depth": w.sim.depth, "pointgoal": w.goal_vector(np.arange(self.num_envs))}
+        if w.sim.use_egomap:
+            obs["ego_map"] = w.sim.egomap()
+        return obs
 
     def reset(self, seed: int | None = None) -> dict:
         if seed is not None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Annotated, Literal
+from typing import Annotated, Literal, get_args
 
 import tyro
 
@@ -21,7 +21,7 @@ from plex_ma.envs.rules import PlexConfig, make_config
 
 # Where the trainer's env defaults differ from the env's own.
 TRAIN_ENV = {"resolution": 64}
-Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt"]
+Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt", "ppo-gru-map"]
 Preset = Literal["smoke", "cpu", "paper"]
 # --device of the CLIs that load networks (evaluate, record, bench train; train has the field below)
 DEVICE_HELP = "where the networks run: auto (CUDA when present), cpu, cuda, cuda:N"
@@ -32,7 +32,7 @@ class TrainConfig:
     """Train PLEX (planner + executor, independent PPO) or a flat PPO baseline."""
 
     method: Method = "plex-gru"
-    """plex-gru / plex-smt (the paper's PLEX LSTM / SMT) or the flat baselines ppo-gru / ppo-smt"""
+    """plex-gru / plex-smt (the paper's PLEX LSTM / SMT) or the flat baselines ppo-gru / ppo-smt; ppo-gru-map: flat PPO-GRU that also reads the planner's ego map through the planner's map encoder (its conv trunk, and its value-iteration module with --planner-value-iteration), the control arm for the hierarchy's gain over the map's"""
     planner: Literal["learn", "random", "oracle"] = "learn"
     """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping) or under the shortest-path oracle planner (ground truth)"""
     executor: Literal["learn", "oracle"] = "learn"
@@ -105,6 +105,8 @@ class TrainConfig:
     """the executor's (and flat policy's) heads also read the encoded goal vector beside the memory's output (--no-executor-goal-skip: heads on the 128-d output alone)"""
     executor_stop_prior: float | None = None
     """PLEX only: start the executor's STOP at p = 0.5 this many metres from its sub-goal, rising nearer and vanishing farther (a skip from the sub-goal distance; None: no skip)"""
+    executor_heading_prior: float | None = None
+    """PLEX only: start the executor's actor turning towards its sub-goal and moving when it faces it, with this many logits (None: no prior)"""
     planner_value_iteration: bool = False
     """PLEX only: the planner also reads a value-iteration module over its ego map (networks.ValueIteration; the paper's planner has none)"""
     executor_hidden: int = 512
@@ -166,52 +168,20 @@ PRESETS: dict[str, dict] = {
     # Finishes in well under two minutes on two cores and still writes a checkpoint.
     "smoke": dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, n_pl=8, num_scenes=4,
                   checkpoint_interval=5, ppo_epochs=2),
-    # What learns best per CPU hour on this machine (docs/results.md: each deviation from the
-    # paper with the measurement behind it). N_EX = 18 executor actions per sub-goal (at the
-    # paper's 10, an executor turning 10 degrees an action cannot face a sub-goal behind it
-    # before control returns, and planners re-deciding from the half-turned heading loop in
-    # place: the map planner over the oracle executor succeeds in 0.870 of 200 val episodes
-    # at N_EX = 10 and 0.975 at 18, commit b0a80be). A 128-unit executor GRU (at 512 the GRU is half
-    # of the update's FLOPs) and lr 1e-3 for the executor, 2.5e-4 (the paper's) for the
-    # planner; a -0.5 executor reward for a STOP short of its sub-goal (without it the
-    # executor's STOP was a free exit and its policy collapsed onto it); the executor's STOP
-    # bonus and penalty split at 0.2 m from the sub-goal (the success distance; at the env's
-    # 0.5 m a STOP 0.2-0.5 m from a sub-goal set that near cost nothing, and a greedy executor
-    # stopped there again and again) and its STOP started likely within 0.15 m (without the
-    # prior it never chose STOP and turned in place at its sub-goals; executor under the
-    # oracle planner, seed 1, val 200 greedy: 0.920 at 205k steps with both, 0.750 at 256k with
-    # the prior alone, 0.550 at 102k with a 0.25 m prior alone); planner updates every
-    # 8 decisions per world (N_PL = 8). Then a curriculum of phases: 40k steps of executor
-    # warm-up in an open room under random sub-goals 1.5 m away in any direction (40-step
-    # episodes; it teaches the executor to turn both ways), 260k steps of the executor under
-    # the map-los planner's sub-goals in the houses, then the planner learns by PPO and by
-    # imitating the map-los planner (DAgger) to the end of the run, the executor learning
-    # beside it (by PPO alone, the planner's updates grew to approx_kl 0.10-0.27 and success
-    # fell). map-los plans on the agent's own ego map and sets each sub-goal where a straight
-    # line over seen floor reaches it (a learned executor rarely reaches one behind a wall):
-    # no ground truth enters training beyond the reward. The planner also reads a
-    # value-iteration module over its ego map (networks.ValueIteration): with the paper's
-    # convolutional trunk alone it imitated the teacher's long routes poorly (procgen test
-    # 0.634 / 0.730 / 0.714 for seeds 0-2, 0.18-0.30 on the 174 episodes over 12 m), with it
-    # 0.873 / 0.887 / 0.890 for seeds 0-2 (0.75-0.77 over 12 m; docs/results.md; with these shared
-    # settings, before PLEX_PRESETS below). 1,024,000 steps.
+    # Reward-only PLEX as it learns best per CPU hour here: both agents by PPO on the reward
+    # alone, after a 40k-step executor warm-up under random sub-goals in an open room. Each
+    # departure from the paper and the measurement behind it: docs/results.md.
     "cpu": dict(total_steps=1_024_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=8, n_ex=18, torch_threads=1,
                 executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_warmup_steps=40_000,
                 warmup_scenes="open-room", random_subgoal_distance=1.5, random_subgoal_angle=3.14,
-                executor_stop_penalty=-0.5, subgoal_radius=0.2, executor_stop_prior=0.15, teacher="map-los",
-                teacher_subgoal_steps=260_000, planner_imitation_steps=724_000, planner_value_iteration=True),
+                executor_stop_penalty=-0.5, subgoal_radius=0.2, executor_stop_prior=0.15, executor_heading_prior=3.0,
+                executor_collision_reward=-0.05, planner_value_iteration=True),
     # The paper's settings: 256 px images, N_PL = 128, 30M steps.
     "paper": dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128),
 }
 
-# A preset's settings for the PLEX methods only, over PRESETS (the flat baselines keep those).
-# cpu: 32 worlds x 32 steps (the same 1,024 per executor update) at 48 px, one PPO epoch
-# of each agent and one imitation minibatch per rollout. With the planner learning, training
-# runs 3.0-3.7x as fast as with the shared settings (16 worlds x 64 steps, 64 px, 4 epochs,
-# 8 imitation minibatches; 1,675-1,902 steps/s in bench train); at 1,024,000 steps it reads
-# procgen test greedy 0.876 / 0.848 / 0.820 for seeds 0-2, against 0.873 / 0.887 / 0.890
-# with those settings (commit 7ddc927) and 0.811 for seed 1 with them and the current code
-# (README, docs/results.md).
+# A preset's settings for the PLEX methods only, over PRESETS (the flat baselines keep those);
+# the speed behind them is in docs/results.md.
 PLEX_PRESETS: dict[str, dict] = {
     "cpu": dict(num_envs=32, rollout_steps=32, resolution=48, ppo_epochs=1, imitation_minibatches=1),
 }
@@ -236,7 +206,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
 
     cfg.env.validate()  # the env's fields, by the env's own rules
 
-    need(cfg.method in ("plex-gru", "plex-smt", "ppo-gru", "ppo-smt"), "method", "unknown method")
+    need(cfg.method in get_args(Method), "method", "unknown method")
     need(cfg.total_steps > 0, "total_steps", "must be positive")
     need(cfg.num_envs >= 1, "num_envs", "must be >= 1")
     need(cfg.env.resolution >= 40, "resolution", "must be >= 40 to train: the executor's CNN needs 40 px")
@@ -263,6 +233,10 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.planner_target_kl is None or cfg.planner_target_kl > 0, "planner_target_kl", "must be positive")
     need(cfg.executor_stop_prior is None or 0 < cfg.executor_stop_prior <= 2, "executor_stop_prior",
          "must be in (0, 2] metres")
+    need(cfg.executor_heading_prior is None or 0 < cfg.executor_heading_prior <= 20, "executor_heading_prior",
+         "must be in (0, 20] logits")
+    need(not (cfg.executor_heading_prior is not None and not cfg.executor_goal_skip), "executor_heading_prior",
+         "needs --executor-goal-skip")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
     need(cfg.teacher_subgoal_steps >= 0, "teacher_subgoal_steps", "must be >= 0")

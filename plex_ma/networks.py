@@ -7,7 +7,8 @@ leading batch dimension:
   direction rad); ``eli`` (B, 128) float.
 - executor: ``rgb`` (B, H, W, 3) uint8; ``depth`` (B, H, W, 1) float in [0, 1];
   ``subgoal`` (B, 2) = (distance m, direction rad).
-- flat:     ``rgb``, ``depth`` as the executor, ``pointgoal`` (B, 2).
+- flat:     ``rgb``, ``depth`` as the executor, ``pointgoal`` (B, 2); and ``ego_map`` as the
+  planner for the flat policy with the map (``FlatMapPolicy``).
 
 Every (distance, direction) vector is fed to the networks as (distance, cos, sin) so that
 directions just either side of +-pi look alike (see ``encode_polar``).
@@ -32,7 +33,7 @@ from torch.nn import functional as F
 from torch.distributions import Categorical, Normal
 
 from plex_ma.envs.rules import ELI_DIM
-from plex_ma.envs.sim.core import NUM_ACTIONS, STOP, BatchedSim
+from plex_ma.envs.sim.core import MOVE_FORWARD, NUM_ACTIONS, STOP, TURN_LEFT, TURN_RIGHT, BatchedSim
 
 # float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
 # `|theta| <= pi` range check; clamp to the float32 just below pi instead.
@@ -402,7 +403,45 @@ def _bellman_backward(cost, sources, saved, grad, g_cost):
                         gc[i, j + db] += g_b
 
 
-class Planner(nn.Module):
+class MapEncoder(nn.Module):
+    """The planner's reading of the ego map, one definition for the PLEX planner (a subclass)
+    and the flat PPO-GRU+map policy (:class:`FlatMapPolicy`, which holds one):
+
+    - ``convs``: the paper's trunk, conv 4x4/2 and conv 3x3/1 (ReLU), flattened
+      (``map_dim`` features);
+    - ``vin`` (with ``value_iteration``, else None): a :class:`ValueIteration` module over
+      the map and the goal (``vin_dim`` features, which end with its sub-goal as (distance /
+      ``SUBGOAL_REACH``, cos, sin)).
+    """
+
+    def __init__(self, ego_channels: int = 2, channels: tuple[int, int] = (32, 64), map_size: int = 32,
+                 value_iteration: bool = False):
+        super().__init__()
+        self.convs = nn.Sequential(
+            layer_init(nn.Conv2d(ego_channels, channels[0], 4, stride=2)), nn.ReLU(),
+            layer_init(nn.Conv2d(channels[0], channels[1], 3, stride=1)), nn.ReLU(),
+            nn.Flatten(),
+        )
+        self.map_dim = _conv_out_dim(self.convs, (ego_channels, map_size, map_size))
+        self.vin = ValueIteration(ego_channels, map_size) if value_iteration else None
+        self.vin_dim = self.vin.out_dim if self.vin is not None else 0
+
+    def read_map(self, ego: torch.Tensor, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None,
+                                                                          torch.Tensor | None]:
+        """ego (B, C, S, S), goal (B, 2) = (distance m, direction rad) -> the trunk's features
+        (B, map_dim), the value-iteration features (B, vin_dim) and its sub-goal (B, 2) =
+        (distance m, direction rad) (both None without the module)."""
+        if self.vin is None:
+            return self.convs(ego), None, None
+        return self.convs(ego), *self.vin(ego, goal)
+
+    def forward(self, ego: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+        """(B, map_dim + vin_dim): the trunk's and the value-iteration module's features."""
+        trunk, vin, _ = self.read_map(ego, goal)
+        return trunk if vin is None else torch.cat([trunk, vin], dim=1)
+
+
+class Planner(MapEncoder):
     """Planner: ego map CNN + ELI + goal -> 512 -> (+ goal) -> MLP heads: stop logits,
     Gaussian sub-goal, value.
 
@@ -429,6 +468,9 @@ class Planner(nn.Module):
       succeeds (< 0.2 m); the head's learned output moves that threshold by only 5 mm per
       unit of logit.
 
+    The map reading (the trunk's convolutions and the value-iteration module) is
+    :class:`MapEncoder`'s, whose ``forward`` this class's replaces.
+
     Sub-goal action: the policy samples an *unbounded* raw (rho, theta) from two Gaussians
     with state-dependent means and state-independent learnable log-stds (started at std
     ``init_std``). The raw sample is what the rollout buffer stores and what ``log_prob`` is
@@ -441,18 +483,12 @@ class Planner(nn.Module):
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
                  map_size: int = 32, init_std: float = 0.5, prior_distance: float = 1.5, head_hidden: int = 256,
                  value_iteration: bool = False):
-        super().__init__()
+        # ``convs`` and ``vin`` (the map reading) keep their names: checkpoints key on them
+        super().__init__(ego_channels, channels, map_size, value_iteration)
         self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
         self.prior_distance = min(prior_distance, rho_max)
-        self.convs = nn.Sequential(
-            layer_init(nn.Conv2d(ego_channels, channels[0], 4, stride=2)), nn.ReLU(),
-            layer_init(nn.Conv2d(channels[0], channels[1], 3, stride=1)), nn.ReLU(),
-            nn.Flatten(),
-        )
-        n_flat = _conv_out_dim(self.convs, (ego_channels, map_size, map_size))
-        self.vin = ValueIteration(ego_channels, map_size) if value_iteration else None
-        n_vin = self.vin.out_dim if self.vin is not None else 0
-        self.fc = nn.Sequential(layer_init(nn.Linear(n_flat + eli_dim + GOAL_FEATURES + n_vin, hidden)), nn.ReLU())
+        self.fc = nn.Sequential(layer_init(nn.Linear(self.map_dim + eli_dim + GOAL_FEATURES + self.vin_dim, hidden)),
+                                nn.ReLU())
         feat = hidden + GOAL_FEATURES
 
         def mlp(out, std):
@@ -481,10 +517,8 @@ class Planner(nn.Module):
             eli = _as_tensor(obs["eli"], dev, torch.float32).detach()
         else:
             eli = torch.zeros(ego.shape[0], self.eli_dim, device=dev)
-        parts, vin_subgoal = [self.convs(ego), eli, goal], None
-        if self.vin is not None:
-            vin_features, vin_subgoal = self.vin(ego, _as_tensor(obs["goal"], dev, torch.float32))
-            parts.append(vin_features)
+        trunk, vin_features, vin_subgoal = self.read_map(ego, _as_tensor(obs["goal"], dev, torch.float32))
+        parts = [trunk, eli, goal] + ([vin_features] if vin_features is not None else [])
         h = self.fc(torch.cat(parts, dim=1))
         return torch.cat([h, goal], dim=1), vin_subgoal
 
@@ -750,7 +784,12 @@ class Executor(nn.Module):
 
     def __init__(self, memory: str = "gru", resolution: int = 128, eli_dim: int = ELI_DIM,
                  smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512, goal_skip: bool = True,
-                 stop_prior: float | None = None):
+                 stop_prior: float | None = None, extra_inputs: int = 0, heading_prior: float | None = None):
+        """``extra_inputs``: features a subclass's ``_inputs`` adds to the memory's input
+        beside the image's and the goal's (:class:`FlatMapPolicy`'s map features).
+        ``heading_prior`` (logits, or None; needs ``goal_skip``): the actor's goal inputs start
+        at MOVE_FORWARD += k cos(direction), TURN_LEFT += k sin, TURN_RIGHT -= k sin, so an
+        untrained policy turns towards its goal and moves when it faces it."""
         super().__init__()
         self.goal_skip = goal_skip
         if memory not in ("gru", "smt"):
@@ -759,9 +798,9 @@ class Executor(nn.Module):
         emb = 512 if memory == "gru" else 128
         self.encoder = RGBDEncoder(resolution, emb)
         if memory == "gru":
-            self.memory = GRUMemory(emb + 3, gru_hidden)
+            self.memory = GRUMemory(emb + 3 + extra_inputs, gru_hidden)
         else:
-            self.memory = SMTMemory(emb + 3, 128, smt_heads, smt_memory)
+            self.memory = SMTMemory(emb + 3 + extra_inputs, 128, smt_heads, smt_memory)
         self.eli_head = layer_init(nn.Linear(self.memory.out_dim, eli_dim))
         # goal_skip: the heads also read the encoded goal vector, so that "turn towards the
         # goal" is a simple function of their input from the first update on (through the
@@ -770,6 +809,13 @@ class Executor(nn.Module):
         head_in = eli_dim + (3 if goal_skip else 0)
         self.actor = layer_init(nn.Linear(head_in, NUM_ACTIONS), std=0.01)
         self.critic = layer_init(nn.Linear(head_in, 1), std=1.0)
+        if heading_prior is not None:
+            if not goal_skip:
+                raise ValueError("heading_prior needs goal_skip (the actor's goal inputs)")
+            with torch.no_grad():  # goal inputs: (distance, cos, sin) after the eli_dim ELI features
+                self.actor.weight[MOVE_FORWARD, eli_dim + 1] += heading_prior
+                self.actor.weight[TURN_LEFT, eli_dim + 2] += heading_prior
+                self.actor.weight[TURN_RIGHT, eli_dim + 2] -= heading_prior
         self.stop_skip = None
         if stop_prior is not None:
             self.stop_skip = nn.Linear(1, NUM_ACTIONS)
@@ -778,6 +824,8 @@ class Executor(nn.Module):
                 self.stop_skip.bias.zero_()
                 self.stop_skip.weight[STOP, 0] = -EXECUTOR_STOP_SLOPE
                 self.stop_skip.bias[STOP] = EXECUTOR_STOP_SLOPE * stop_prior + math.log(NUM_ACTIONS - 1)
+                # facing the sub-goal, the heading prior adds k to MOVE_FORWARD: so much more for STOP
+                self.stop_skip.bias[STOP] += heading_prior or 0.0
 
     @property
     def device(self) -> torch.device:
@@ -849,6 +897,43 @@ class FlatPolicy(Executor):
     """
 
     goal_key = "pointgoal"
+    reads_ego_map = False  # the flat worlds need not keep ego maps (FlatMapPolicy's do)
 
     def __init__(self, memory: str = "gru", resolution: int = 128, smt_memory: int = 256, **kw):
         super().__init__(memory=memory, resolution=resolution, smt_memory=smt_memory, **kw)
+
+
+class FlatMapPolicy(FlatPolicy):
+    """PPO-GRU+map (``ppo-gru-map``): the flat PPO-GRU baseline that also reads the PLEX
+    planner's ego map, the control arm that tells the hierarchy's gain from the map's.
+
+    Observations: the flat ones and ``ego_map`` (B, C, 32, 32), the planner's (the flat worlds
+    keep it when built with ``egomap=True``). The map goes through the planner's
+    :class:`MapEncoder` (its trunk and, with ``value_iteration``, its value-iteration module,
+    which reads the point goal as the planner reads its goal), and those features enter the
+    memory beside the image features and the encoded goal; everything after the memory is
+    :class:`FlatPolicy`'s.
+    """
+
+    reads_ego_map = True
+
+    def __init__(self, memory: str = "gru", resolution: int = 128, ego_channels: int = 2,
+                 value_iteration: bool = False, **kw):
+        encoder = MapEncoder(ego_channels, value_iteration=value_iteration)
+        super().__init__(memory=memory, resolution=resolution, extra_inputs=encoder.map_dim + encoder.vin_dim, **kw)
+        self.map = encoder
+
+    def _inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        x, goal = super()._inputs(obs)
+        dev = self.device
+        ego = _as_tensor(obs["ego_map"], dev, torch.float32)
+        pointgoal = _as_tensor(obs[self.goal_key], dev, torch.float32)
+        lead = ego.shape[:-3]
+        feat = self.map(ego.reshape(-1, *ego.shape[-3:]), pointgoal.reshape(-1, 2))
+        return torch.cat([x, feat.view(*lead, -1)], dim=-1), goal
+
+    def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
+        c = self.map.convs[0].in_channels
+        # mostly unseen cells, some free and some obstacles, as an ego map reads
+        return {**super().example_obs(batch, generator),
+                "ego_map": (torch.rand(batch, c, 32, 32, generator=generator) < 0.2).float()}

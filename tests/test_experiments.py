@@ -166,8 +166,9 @@ def test_table1_report_aggregates_every_seed(tmp_path):
         _fake_run(tmp_path, "plex-gru", seed, s, r)
         _fake_run(tmp_path, "ppo-gru", seed, s / 2, r / 2)
     _fake_run(tmp_path, "ppo-smt", 0, 0.1, 0.5)  # a missing seed is reported, not invented
+    _fake_run(tmp_path, "ppo-gru-map", 0, 0.3, 2.0)  # the map control arm
     assert cli_main(["table1", "--out", str(tmp_path), "--report-only", "--budget", "1000",
-                     "--arms", "plex-gru", "ppo-gru", "ppo-smt", "--seeds", "0", "1"]) == 0
+                     "--arms", "plex-gru", "ppo-gru", "ppo-smt", "ppo-gru-map", "--seeds", "0", "1"]) == 0
     res = json.loads((tmp_path / "table1.json").read_text())["table"]
     pg = res["plex-gru"]["test"]["procgen"]
     assert res["plex-gru"]["seeds"] == [0, 1]
@@ -182,6 +183,7 @@ def test_table1_report_aggregates_every_seed(tmp_path):
     md = (tmp_path / "table1.md").read_text()
     assert "| PLEX GRU | 2 | 2.000 ± 1.414 | 0.300 ± 0.141 | 0.200 / 0.400 |" in md
     assert "| PPO SMT | 1 | 0.500 | 0.100 | 0.100 |" in md  # one seed: no spread
+    assert "| PPO GRU+map | 1 | 2.000 | 0.300 | 0.300 |" in md
     for png in ("fig4.png", "fig5b.png"):
         assert (tmp_path / png).stat().st_size > 1000
 

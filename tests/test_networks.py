@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from plex_ma.networks import ELI_DIM, Executor, FlatPolicy, Planner
+from plex_ma.networks import ELI_DIM, Executor, FlatMapPolicy, FlatPolicy, Planner
 from plex_ma.trainers.ppo import RolloutBuffer
 
 
@@ -37,7 +37,8 @@ def _rollout(policy, buf, state, starts, gen):
     lambda: Executor("gru", 64),
     lambda: Executor("smt", 64, smt_memory=4),  # tiny memory: the sliding window and the stored memory matter
     lambda: FlatPolicy("smt", 64, smt_memory=5),
-], ids=["executor-gru", "executor-smt", "flat-smt"])
+    lambda: FlatMapPolicy("gru", 64, gru_hidden=32, value_iteration=True),  # ppo-gru-map: ego map + VIN
+], ids=["executor-gru", "executor-smt", "flat-smt", "flat-gru-map"])
 def test_evaluate_sequences_matches_step_by_step(make):
     torch.manual_seed(0)
     gen = torch.Generator().manual_seed(1)
@@ -273,3 +274,17 @@ def test_executor_stop_prior_stops_near_the_subgoal():
         ex = Executor(resolution=40, gru_hidden=16, stop_prior=prior)
         p_stop = torch.softmax(ex(obs, ex.initial_state(5), starts)[0], -1)[:, 0]
         torch.testing.assert_close(p_stop, torch.tensor(expect), atol=0.02, rtol=0)
+
+
+def test_executor_heading_prior_turns_towards_the_subgoal():
+    """With a heading prior, an untrained executor turns towards a sub-goal to its left or
+    right, moves when it faces one, and (with the stop prior) still stops on it."""
+    torch.manual_seed(0)
+    obs = Executor(resolution=40, gru_hidden=16).example_obs(5)
+    obs["subgoal"] = torch.tensor([[2.0, 0.0], [2.0, 1.5], [2.0, -1.5], [2.0, 3.0], [0.05, 0.0]])
+    ex = Executor(resolution=40, gru_hidden=16, stop_prior=0.15, heading_prior=3.0)
+    p = torch.softmax(ex(obs, ex.initial_state(5), torch.ones(5, dtype=torch.bool))[0], -1)
+    assert p[:, 1:].argmax(-1)[:4].tolist() == [0, 1, 2, 1]  # forward, left, right; behind: left (sin 3 > 0)
+    assert p[0, 1] > 0.85 and p[1, 2] > 0.85 and p[2, 3] > 0.85 and p[4, 0] > 0.85
+    with pytest.raises(ValueError, match="goal_skip"):
+        Executor(resolution=40, gru_hidden=16, goal_skip=False, heading_prior=3.0)

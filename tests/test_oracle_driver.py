@@ -101,6 +101,29 @@ def test_executor_stop_penalty():
         plex_nav_v0.env(**SMALL, executor_stop_penalty=1.0)
 
 
+def test_executor_collision_reward():
+    """executor_collision_reward: a blocked move costs the executor that much more, and the
+    planner nothing more (walking straight on until the agent runs into a wall)."""
+    env = plex_nav_v0.env(**SMALL, executor_collision_reward=-0.2)
+    env.reset(seed=0)
+    raw = env.unwrapped
+    env.reset(options={"episode": line_episode(raw, 1.0)})
+    blocked = 0
+    for _ in range(120):
+        if env.agent_selection == "planner":
+            env.step(planner_action(0, 4.0, 0.0))
+            continue
+        pos, hits = raw.worlds.sim.pos[0].copy(), raw.worlds.collisions[0]
+        env.step(executor_action(1))
+        if raw.worlds.collisions[0] > hits and np.all(raw.worlds.sim.pos[0] == pos):  # no progress either way
+            blocked += 1
+            assert env.rewards["executor"] == pytest.approx(-0.01 - 0.01 - 0.2, abs=1e-6)
+            assert env.rewards["planner"] == pytest.approx(-0.01 - 0.01, abs=1e-6)
+    assert blocked > 0
+    with pytest.raises(ValueError, match="executor_collision_reward"):
+        plex_nav_v0.env(**SMALL, executor_collision_reward=0.5)
+
+
 def test_evaluate_with_oracles_says_ground_truth(tmp_path, capsys):
     out = tmp_path / "eval.json"
     evaluate_main(["--planner", "oracle", "--executor", "oracle", "--split", "val", "--episodes", "8", "--json",

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from plex_ma.config import TrainConfig, from_dict, setting
 from plex_ma.envs.rules import NavConfig
-from plex_ma.networks import Executor, FlatPolicy, Planner
+from plex_ma.networks import Executor, FlatMapPolicy, FlatPolicy, Planner
 
 from . import distributed
 from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
@@ -35,7 +35,7 @@ LEGACY_CONFIG = {"executor_goal_skip": False, "planner_value_iteration": False}
 
 # The settings that shape the networks: a checkpoint loads only into a run with the same.
 ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_goal_skip")
-PLEX_ARCH_KEYS = ("planner_value_iteration",)  # ... and for the PLEX methods (the planner's)
+PLEX_ARCH_KEYS = ("planner_value_iteration",)  # ... and for the methods that read the ego map (the planner's)
 NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
 
 
@@ -59,16 +59,26 @@ def env_kwargs(cfg: TrainConfig, split: str | None = None) -> dict:
 
 
 def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
-    """The networks of a method: {'planner', 'executor'} for PLEX, {'policy'} for flat PPO."""
+    """The networks of a method: {'planner', 'executor'} for PLEX, {'policy'} for flat PPO
+    (ppo-gru-map: the flat GRU policy that also reads the ego map, with the planner's map
+    encoder as --planner-value-iteration sets it)."""
     memory = cfg.method.split("-")[1]
     if cfg.method.startswith("plex"):
         return {"planner": Planner(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max,
                                    value_iteration=cfg.planner_value_iteration),
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip,
-                                     stop_prior=cfg.executor_stop_prior)}
-    return {"policy": FlatPolicy(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
-                                 gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip)}
+                                     stop_prior=cfg.executor_stop_prior, heading_prior=cfg.executor_heading_prior)}
+    flat = dict(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
+                gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip)
+    if cfg.method == "ppo-gru-map":
+        return {"policy": FlatMapPolicy(value_iteration=cfg.planner_value_iteration, **flat)}
+    return {"policy": FlatPolicy(**flat)}
+
+
+def reads_ego_map(nets: dict[str, torch.nn.Module]) -> bool:
+    """Whether a method's networks read the ego map (then its worlds must keep it)."""
+    return "planner" in nets or getattr(nets.get("policy"), "reads_ego_map", False)
 
 
 @dataclass
@@ -135,7 +145,6 @@ class Trainer:
         self.step = 0  # environment steps (agent actions) so far
         self.updates = {k: 0 for k in self.nets}
         self.stats = EpisodeStats()
-        self.logger = MetricLogger(cfg.run_dir) if log and self.dist.is_main else None  # rank 0 writes
         self.resumed_from = None
         found = distributed.find_resumable(cfg.run_dir)  # rank 0 reads, every worker gets it
         if found is not None:
@@ -148,12 +157,15 @@ class Trainer:
             self.load_weights(load_checkpoint(cfg.checkpoint))
             if self.dist.is_main:
                 print(f"fine-tuning the networks of {cfg.checkpoint}")
+        # rank 0 writes, from its first log on; rows an earlier run logged past this step go
+        self.logger = MetricLogger(cfg.run_dir, start_step=self.step) if log and self.dist.is_main else None
         distributed.sync_start(self)  # distributed: rank 0's parameters everywhere, samplers seeded apart
 
     def _set_threads(self) -> None:
         """torch's intra-op threads as configured. Called again after the worlds' first
-        reset: the simulator's numba kernels share torch's OpenMP runtime, and starting
-        them sets its thread count to numba's."""
+        reset: with ``NUMBA_THREADING_LAYER=omp`` (the default layer is workqueue,
+        envs/sim/kernels.py) the simulator's numba kernels share torch's OpenMP runtime,
+        and starting them sets its thread count to numba's."""
         if self.cfg.torch_threads:
             torch.set_num_threads(self.cfg.torch_threads)
 
@@ -175,7 +187,7 @@ class Trainer:
         planner = state.get("models", {}).get("planner")
         if isinstance(planner, dict) and "stop_skip.weight" not in planner:
             raise CheckpointError(f"{what} holds a planner with linear heads; plex-ma's planner has only the goal-relative MLP heads")
-        for key in ARCH_KEYS + (PLEX_ARCH_KEYS if self.cfg.method.startswith("plex") else ()):
+        for key in ARCH_KEYS + (PLEX_ARCH_KEYS if reads_ego_map(self.nets) else ()):
             if setting(saved, key) != setting(self.cfg, key):
                 raise CheckpointError(f"{what} has {key}={setting(saved, key)!r} but this run asks for "
                                       f"{setting(self.cfg, key)!r}")

@@ -17,7 +17,7 @@ from plex_ma.config import TrainConfig
 
 from .checkpoint import CheckpointError, load_checkpoint
 from .driver import PlexDriver, make_executor, make_planner
-from .base import build_policies, env_kwargs, saved_config
+from .base import build_policies, env_kwargs, reads_ego_map, saved_config
 
 METRICS = ("success", "spl", "reward", "distance_to_goal", "collisions")
 
@@ -70,7 +70,8 @@ def _run_episodes(cfg, nets, split, episodes, scenes, num_envs, episodes_file, r
     if episodes_file:
         kw["episodes_file"] = episodes_file
     plex = cfg.method.startswith("plex")
-    env = PlexVectorEnv(num_envs, seed=0, **kw) if plex else PointNavVectorEnv(num_envs, seed=0, **kw)
+    env = PlexVectorEnv(num_envs, seed=0, **kw) if plex else \
+        PointNavVectorEnv(num_envs, seed=0, egomap=reads_ego_map(nets), **kw)
     eps = episode_set(env, split, episodes, seed=12345)
     wanted = {e.episode_id for e in eps}
     if len(wanted) != len(eps):  # generated sets number their episodes 0..n-1; files must too

@@ -1,5 +1,5 @@
-"""Recurrent PPO for the flat baselines (PPO-GRU, PPO-SMT) on PointNav: one agent acts at
-every step and learns from the env's reward (gamma_flat per step).
+"""Recurrent PPO for the flat baselines (PPO-GRU, PPO-SMT, PPO-GRU+map) on PointNav: one
+agent acts at every step and learns from the env's reward (gamma_flat per step).
 """
 
 from __future__ import annotations
@@ -15,17 +15,18 @@ from plex_ma.envs.vector import PointNavVectorEnv
 from plex_ma.networks import FlatPolicy
 
 from . import distributed
-from .base import Trainer, env_kwargs
+from .base import Trainer, env_kwargs, reads_ego_map
 from .ppo import RolloutBuffer, ppo_update
 
 
 class FlatTrainer(Trainer):
-    """Recurrent PPO for the flat baselines (PPO-GRU, PPO-SMT) on PointNav."""
+    """Recurrent PPO for the flat baselines (PPO-GRU, PPO-SMT, PPO-GRU+map) on PointNav; the
+    worlds keep ego maps only for a policy that reads them."""
 
     def __init__(self, cfg: TrainConfig, log: bool = True, record: Callable[[Trainer], object] | None = None):
         super().__init__(cfg, log, record)
         self.env = PointNavVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["policy"] + self.dist.seed_offset,
-                                     **env_kwargs(cfg))
+                                     egomap=reads_ego_map(self.nets), **env_kwargs(cfg))
         self.policy: FlatPolicy = self.nets["policy"]
 
     def train(self) -> dict:

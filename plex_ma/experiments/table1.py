@@ -68,6 +68,8 @@ ARMS: dict[str, Arm] = {a.name: a for a in [
     Arm("plex-smt", "PLEX SMT", ("--method", "plex-smt")),
     Arm("ppo-gru", "PPO GRU", ("--method", "ppo-gru")),
     Arm("ppo-smt", "PPO SMT", ("--method", "ppo-smt")),
+    # the flat GRU agent with the planner's ego map and map encoder: the hierarchy's gain apart from the map's
+    Arm("ppo-gru-map", "PPO GRU+map", ("--method", "ppo-gru-map")),
     Arm("plex-gru-noeli", "PLEX GRU, no ELI", ("--method", "plex-gru", "--no-eli")),
     Arm("plex-gru-mix", "PLEX GRU, procgen+r2v", ("--method", "plex-gru", "--scenes", "procgen+r2v")),
 ]}
@@ -303,7 +305,7 @@ def main(args, out: Path) -> dict:
         "table": table, "runs": runs, "machine": machine(), "provenance": provenance(),
         "seconds": round(time.time() - t0, 1)})
     write_markdown(table, args, out / "table1.md")
-    plot_curves(out, args, [a for a in args.arms if a in ("plex-gru", "plex-smt", "ppo-gru", "ppo-smt")],
+    plot_curves(out, args, [a for a in args.arms if a in ("plex-gru", "plex-smt", "ppo-gru", "ppo-smt", "ppo-gru-map")],
                 out / "fig4.png", f"Fig. 4: training curves, budget {args.budget:,} steps")
     if "plex-gru" in args.arms and "plex-gru-noeli" in args.arms:
         plot_curves(out, args, ["plex-gru", "plex-gru-noeli"], out / "fig5a.png",
