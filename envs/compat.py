@@ -60,8 +60,14 @@ From the inside out:
    (planner ``Discrete(K)``, executor ``Discrete(4)``).
 5. ``supersuit.pad_action_space_v0``: both to ``Discrete(K)``. (On its own it would
    silently map an executor action above 3 to 0, STOP.)
-6. :class:`ActionMaskWrapper` (ours): adds ``action_mask`` and checks every action
-   against it before it reaches step 5, since SuperSuit has no action-mask wrapper.
+6. :class:`CompatEnv` (ours), the env the user gets: adds ``action_mask`` and checks
+   every action against it before it reaches step 5, since SuperSuit has no action-mask
+   wrapper. It is an AEC env of its own, not a wrapper: ``env.unwrapped`` is the compat
+   env itself, so every way of asking for the spaces (``observation_space(agent)``,
+   ``action_space(agent)``, the ``observation_spaces`` / ``action_spaces`` dicts, the
+   same on ``unwrapped``) gives the compat spaces, which trainers that read
+   ``unwrapped.observation_spaces`` (skrl, RLlib) need. The native env is
+   ``env.native``.
 
 ## SuperSuit on the native ``plex_nav_v0``
 
@@ -93,7 +99,7 @@ import functools
 import numpy as np
 import supersuit as ss
 from gymnasium import spaces
-from supersuit.utils.base_aec_wrapper import BaseWrapper
+from pettingzoo import AECEnv
 
 from .plex_nav import env as native_env
 from .actions import InvalidAction, discrete
@@ -145,7 +151,7 @@ def compat_env(image_size: int = 32, subgoal_distances=None, subgoal_directions:
     e = ss.action_lambda_v1(e, functools.partial(_native_action, grid=grid),
                             functools.partial(_discrete_space, k=1 + len(grid)))
     e = ss.pad_action_space_v0(e)
-    return ActionMaskWrapper(e, build_args)
+    return CompatEnv(e, build_args)
 
 
 def subgoal_grid(distances, directions: int) -> np.ndarray:
@@ -200,15 +206,27 @@ def _discrete_space(act_space, agent, k: int) -> spaces.Discrete:
     return spaces.Discrete(k if agent == "planner" else len(ACTION_NAMES))
 
 
-class ActionMaskWrapper(BaseWrapper):
-    """Adds ``action_mask`` to the flat observations and rejects masked or malformed
-    actions with :class:`InvalidAction` before they reach SuperSuit's wrappers."""
+class CompatEnv(AECEnv):
+    """The compat view: an AEC env in its own right over the SuperSuit chain (steps 1-5
+    of the module docstring). It adds ``action_mask`` to the flat observations and rejects
+    masked or malformed actions with :class:`InvalidAction` before they reach SuperSuit's
+    wrappers.
 
-    def __init__(self, env, build_args: dict):
-        super().__init__(env)
+    Every way of asking for its spaces gives the compat spaces: ``observation_space(agent)``
+    and ``action_space(agent)``, the ``observation_spaces`` and ``action_spaces`` dicts,
+    and the same on ``unwrapped``, which is this env itself (trainers such as skrl and
+    RLlib read the spaces there). The native env under it is :attr:`native`; its
+    attributes (``config``, ``worlds``, ``scene_id`` ...) are also read through this one."""
+
+    def __init__(self, chain: AECEnv, build_args: dict):
+        super().__init__()
+        self.env = chain
         self._build_args = dict(build_args)
-        agents = env.possible_agents
-        self.num_actions = int(env.action_space(agents[0]).n)
+        agents = chain.possible_agents
+        self.possible_agents = list(agents)
+        self.metadata = chain.metadata
+        self.render_mode = chain.render_mode
+        self.num_actions = int(chain.action_space(agents[0]).n)
         own = {"planner": self.num_actions, "executor": len(ACTION_NAMES)}
         self._masks = {}
         for a in agents:
@@ -216,36 +234,73 @@ class ActionMaskWrapper(BaseWrapper):
             m[:own[a]] = 1
             self._masks[a] = m
         self._obs_space = spaces.Dict({
-            "observation": env.observation_space(agents[0]),
+            "observation": chain.observation_space(agents[0]),
             "action_mask": spaces.Box(0, 1, (self.num_actions,), np.int8),
         })
+        self._act_space = chain.action_space(agents[0])
+
+    def __getattr__(self, name: str):
+        # the episode's state (agents, agent_selection, rewards, terminations, truncations,
+        # infos, _cumulative_rewards) and the native env's attributes, read through
+        if name == "env" or (name.startswith("_") and name != "_cumulative_rewards"):
+            raise AttributeError(name)
+        return getattr(self.env, name)
 
     def __reduce__(self):
         return (functools.partial(compat_env, **self._build_args), ())
 
+    def __str__(self) -> str:
+        return f"compat<{self.env.unwrapped}>"
+
+    @property
+    def native(self) -> AECEnv:
+        """The native ``plex_nav_v0`` env (``raw_env``) under the compat view."""
+        return self.env.unwrapped
+
     def observation_space(self, agent):
         return self._obs_space
+
+    def action_space(self, agent):
+        return self._act_space
+
+    @property
+    def observation_spaces(self) -> dict:
+        return {a: self._obs_space for a in self.possible_agents}
+
+    @property
+    def action_spaces(self) -> dict:
+        return {a: self._act_space for a in self.possible_agents}
 
     def action_mask(self, agent) -> np.ndarray:
         return self._masks[agent].copy()
 
-    def _modify_observation(self, agent, observation):
-        return {"observation": observation, "action_mask": self._masks[agent].copy()}
+    def observe(self, agent):
+        return {"observation": self.env.observe(agent), "action_mask": self._masks[agent].copy()}
 
-    def _modify_action(self, agent, action):
-        return action
+    def reset(self, seed=None, options=None) -> None:
+        self.env.reset(seed=seed, options=options)
+
+    def state(self):
+        return self.env.state()
+
+    def render(self):
+        return self.env.render()
+
+    def close(self) -> None:
+        self.env.close()
 
     def step(self, action) -> None:
-        if self._has_reset and not self.agents:
+        started = self.env._has_reset  # the outermost SuperSuit wrapper's order enforcing
+        if started and not self.agents:
             raise InvalidAction("step() called after the episode ended; call reset()")
-        if self._has_reset:
+        if started:
             agent = self.agent_selection
             if self.terminations[agent] or self.truncations[agent]:
                 if action is not None:
                     raise InvalidAction(f"{agent}: the episode has ended; the only valid action is None (dead step)")
             else:
                 action = self._check(agent, action)
-        super().step(action)
+        self.env.step(action)
 
     def _check(self, agent: str, action) -> int:
         k = self.num_actions

@@ -31,10 +31,10 @@ import tyro
 from torch import nn
 from torch.distributions import Categorical
 
-# plex_ma sets OMP_WAIT_POLICY=PASSIVE, which the OpenMP runtime reads once, when torch
-# loads it; the simulator's numba kernels share that runtime. Imported after torch, its
-# threads spin while they wait, and beside any other busy process the simulator and the
-# networks both slow down by 10x or more.
+# plex_ma sets OMP_WAIT_POLICY=PASSIVE, which torch's OpenMP runtime reads once, when torch
+# loads it. Imported after torch, torch's threads spin while they wait, and beside any
+# other busy process the networks slow down by 10x or more (plex_ma warns; the simulator's
+# kernels do not use OpenMP and run at the same speed either way).
 
 
 @dataclass

@@ -42,10 +42,10 @@ import logging
 import time
 
 import numpy as np
-import torch
-from torch import nn
 
-from plex_ma.envs import plex_nav_v0
+from plex_ma.envs import plex_nav_v0  # before torch: its OpenMP wait policy (plex_ma/__init__.py)
+import torch  # noqa: E402
+from torch import nn  # noqa: E402
 
 try:
     from tianshou.algorithm import PPO

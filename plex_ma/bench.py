@@ -54,6 +54,27 @@ are random moves, STOP with probability ``--stop-prob`` (0: episodes run to
 of process CPU time. Episode resets (sampling an episode with its Dijkstra field, about
 3 ms) cost the same in both, so frequent episode ends lower the speedup.
 
+``order`` checks that the order of imports does not change the env's speed. It runs
+``--rounds`` rounds of fresh child processes, one per module in ``--first`` (default
+``plex_ma``, ``torch`` and ``numba``), each importing that module before plex_ma, with
+``OMP_WAIT_POLICY`` removed from their environment (as in a fresh shell; the bench's own
+``import plex_ma`` set it); the order of the children
+rotates from round to round, so that the machine's drift falls on all of them. Each child
+times, best of ``--blocks`` blocks: ``single``, one ``gymnasium.make("plex_ma/PointNav-v0")``
+env (an SB3- or RLlib-style loop); ``vector``, ``PointNavVectorEnv`` at ``--num-envs``
+worlds (numba's threads share out the worlds); ``torch_env``, the single env with a
+forward pass of a small CNN (SB3's NatureCNN) on each observation, torch at its default
+threads (``--no-torch-env`` leaves it out). Each rate comes per second of wall time and
+(``_cpu``) per second of the process's CPU time, which another process's load inflates
+less. It reports numba's threading layer, whether ``import plex_ma`` warned, and a digest
+of the vector env's last observations (the same in every child: the kernels give the same
+results whatever the order). ``ratio`` is each child's median over the ``plex_ma``-first
+child's.
+``torch_env`` also measures torch itself: when torch is imported first, torch's OpenMP
+runtime starts before plex_ma can ask it to wait passively (``OMP_WAIT_POLICY``), and its
+threads spin between operations, which on a busy machine slows torch many times over
+(plex_ma warns when that happens; exporting ``OMP_WAIT_POLICY=PASSIVE`` avoids it).
+
 ``record`` times the cost of the rerun recordings made during training: the same short
 training (``--preset``, ``--updates`` executor updates, fresh run dirs) once without
 recording and once with ``--record-interval``, after a warm-up run, and each
@@ -66,9 +87,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import os
 import platform
+import subprocess
+import sys
 import tempfile
 import time
 
@@ -78,11 +102,12 @@ import numpy as np
 import torch
 
 import plex_ma.viz as vr
+from plex_ma.cli import Parser, fail, integer, probability
 from plex_ma.config import DEVICE_HELP, ENV_FIELDS, TrainConfig, preset_defaults, replace, setting, validate
 from plex_ma.envs import plex_nav_v0
-from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
+from plex_ma.envs.sim import BatchedSim, EpisodeFileError, Geodesics, SceneError, scene_bank
 from plex_ma.envs.sim.episodes import sample_episode
-from plex_ma.envs.vector import EXECUTOR, PlexVectorEnv
+from plex_ma.envs.vector import EXECUTOR, PlexVectorEnv, PointNavVectorEnv
 from plex_ma.flops import matmul_gflops, model_flops_per_step
 from plex_ma.trainers.device import describe
 from plex_ma.trainers import make_trainer
@@ -358,6 +383,100 @@ def bench_gymvec(num_envs: int = 16, resolution: int = 64, steps: int = 300, see
             "episodes_ended": ended["count"], "rounds": rounds, "identical": bool(identical), "machine": machine()}
 
 
+# A child of ``bench order``: imports ``argv[1]`` before plex_ma, then times the envs.
+_ORDER_CHILD = """
+import importlib, sys, warnings
+importlib.import_module(sys.argv[1])
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    import plex_ma
+warned = any(w.category.__name__ == "OpenMPWarning" for w in caught)
+from plex_ma.bench import order_child
+order_child(*sys.argv[2:], warned=warned)
+"""
+
+
+def order_child(steps: str, num_envs: str, resolution: str, blocks: str, torch_env: str, warned: bool) -> None:
+    """One child of ``bench order`` (run after its first import): prints one JSON line."""
+    steps, num_envs, resolution, blocks = int(steps), int(num_envs), int(resolution), int(blocks)
+    cfg = dict(resolution=resolution, num_scenes=4, max_steps=200)
+    rng = np.random.default_rng(0)
+    env = gymnasium.make("plex_ma/PointNav-v0", **cfg)
+    env.reset(seed=0)
+    venv = PointNavVectorEnv(num_envs, seed=0, **cfg)
+    venv.reset()
+    net = torch.nn.Sequential(  # SB3's NatureCNN on RGB-D
+        torch.nn.Conv2d(4, 32, 8, 4), torch.nn.ReLU(), torch.nn.Conv2d(32, 64, 4, 2), torch.nn.ReLU(),
+        torch.nn.Conv2d(64, 64, 3, 1), torch.nn.ReLU(), torch.nn.Flatten(), torch.nn.LazyLinear(512))
+
+    def single(n: int, with_torch: bool = False) -> None:
+        for a in rng.integers(1, 4, n):
+            obs, _, term, trunc, _ = env.step(int(a))
+            if term or trunc:
+                obs, _ = env.reset()
+            if with_torch:
+                x = np.concatenate([obs["rgb"] / np.float32(255), obs["depth"]], -1)
+                with torch.no_grad():
+                    net(torch.from_numpy(x).permute(2, 0, 1)[None])
+
+    def vector(n: int) -> None:
+        for a in rng.integers(1, 4, (n, num_envs)):
+            venv.step(a)
+
+    runs: dict[str, list[float]] = {}
+
+    def timed(name: str, steps_done: int, fn, *args) -> None:
+        t, c = time.perf_counter(), time.process_time()
+        fn(*args)
+        runs.setdefault(name, []).append(steps_done / (time.perf_counter() - t))
+        runs.setdefault(name + "_cpu", []).append(steps_done / max(time.process_time() - c, 1e-9))
+
+    single(20)  # compiled kernels loaded
+    vector(5)
+    calls = max(1, steps // num_envs)
+    for _ in range(blocks):  # the envs alone first: no torch thread is awake yet
+        timed("single", steps, single, steps)
+        timed("vector", calls * num_envs, vector, calls)
+    if torch_env == "1":
+        single(5, True)
+        for _ in range(blocks):
+            timed("torch_env", max(1, steps // 2), single, max(1, steps // 2), True)
+    digest = hashlib.sha256()
+    for v in venv.step(np.ones(num_envs, np.int64))[0].values():
+        digest.update(np.ascontiguousarray(v).tobytes())
+    print(json.dumps({"threading_layer": numba.threading_layer(), "digest": digest.hexdigest()[:16],
+                      "torch_threads": torch.get_num_threads(), "warned": warned,
+                      **{k: max(v) for k, v in runs.items()}}))
+
+
+def bench_order(first: tuple[str, ...] = ("plex_ma", "torch", "numba"), rounds: int = 3, steps: int = 300,
+                num_envs: int = 16, resolution: int = 64, blocks: int = 3, torch_env: bool = True,
+                timeout: float = 300.0) -> dict:
+    """Env steps/s with different modules imported before plex_ma, each in fresh child
+    processes, alternately (see the module docstring)."""
+    measures = ("single", "vector") + (("torch_env",) if torch_env else ())
+    measures += tuple(m + "_cpu" for m in measures)
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}  # what ``import plex_ma`` set
+    results: dict[str, list[dict]] = {m: [] for m in first}
+    for r in range(rounds):
+        for m in first[r % len(first):] + first[:r % len(first)]:
+            out = subprocess.run([sys.executable, "-c", _ORDER_CHILD, m, str(steps), str(num_envs), str(resolution),
+                                  str(blocks), str(int(torch_env))], capture_output=True, text=True, env=env,
+                                 timeout=timeout)
+            if out.returncode != 0:
+                raise RuntimeError(f"bench order: the child importing {m} first failed:\n{out.stderr[-2000:]}")
+            results[m].append(json.loads(out.stdout.strip().splitlines()[-1]))
+    median = {m: {k: float(np.median([x[k] for x in rs])) for k in measures} for m, rs in results.items()}
+    ref = median[first[0]]
+    return {"benchmark": "order", "first": list(first), "rounds": rounds, "steps": steps, "num_envs": num_envs,
+            "resolution": resolution, "steps_per_second": median,
+            "ratio": {m: {k: v[k] / ref[k] for k in measures} for m, v in median.items()},
+            "threading_layer": {m: sorted({x["threading_layer"] for x in rs}) for m, rs in results.items()},
+            "warned": {m: any(x["warned"] for x in rs) for m, rs in results.items()},
+            "identical": len({x["digest"] for rs in results.values() for x in rs}) == 1,
+            "runs": results, "machine": machine()}
+
+
 def bench_record(preset: str = "cpu", updates: int = 20, record_interval: int = 10, default_interval: int | None = None,
                  seed: int = 0, method: str = "plex-gru") -> dict:
     """Training time with and without recordings (see the module docstring)."""
@@ -498,73 +617,8 @@ def bench_adam(preset: str = "cpu", steps: int = 20, rounds: int = 5, threads: i
     return out
 
 
-def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="python -m plex_ma.bench", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="what", required=True)
-
-    def common(sp, steps: int, steps_help: str) -> None:
-        sp.add_argument("--num-envs", type=int, default=64, help="worlds stepped per call")
-        sp.add_argument("--resolution", type=int, default=128, help="square image size in pixels")
-        sp.add_argument("--steps", type=int, default=steps, help=steps_help)
-        sp.add_argument("--seed", type=int, default=0)
-        sp.add_argument("--scenes", default="procgen", help="scene source")
-        sp.add_argument("--num-scenes", type=int, default=None, help="training scenes (default: all of the source's)")
-        sp.add_argument("--json", action="store_true", help="print one JSON object")
-
-    ps = sub.add_parser("sim", help="raw batched simulator throughput")
-    common(ps, 300, "batched steps to time")
-    pe = sub.add_parser("env", help="AEC env turns/s, vector env steps/s and their ratio to the raw simulator")
-    common(pe, 200, "vector env calls to time (the raw simulator gets as many)")
-    pe.add_argument("--rounds", type=int, default=10, help="alternate the vector env and the raw simulator this "
-                    "many times (both timed in each round)")
-    pe.add_argument("--warmup", type=int, default=20, help="untimed calls of each before timing")
-    pe.add_argument("--aec-turns", type=int, default=2000, help="AEC turns to time")
-    pe.add_argument("--planner-stop-prob", type=float, default=0.01, help="chance that a planner action is STOP")
-    pe.add_argument("--executor-stop-prob", type=float, default=0.1, help="chance that an executor action is STOP")
-    h = ("make_vec's batched PointNav vector env against SyncVectorEnv of single envs (default: 16 worlds at "
-         "64 px, as the cpu preset for the flat baselines)")
-    pv = sub.add_parser("gymvec", help=h, description=h)
-    common(pv, 300, "vector steps to time (each env gets as many)")
-    pv.set_defaults(num_envs=16, resolution=64)
-    pv.add_argument("--rounds", type=int, default=10, help="alternate the two envs this many times")
-    pv.add_argument("--warmup", type=int, default=20, help="untimed steps of each before timing")
-    pv.add_argument("--stop-prob", type=float, default=0.0, help="chance that an action is STOP (ends the episode)")
-    pv.add_argument("--max-steps", type=int, default=500, help="actions before an episode truncates")
-    pg = sub.add_parser("geodesic", help="sub-goal distance queries: corner graphs against A*, one thread")
-    pg.add_argument("--queries", type=int, default=4000, help="queries to time")
-    pg.add_argument("--astar-queries", type=int, default=500, help="of those, how many A* answers too")
-    pg.add_argument("--seed", type=int, default=0)
-    pg.add_argument("--scenes", default="procgen", help="scene source")
-    pg.add_argument("--num-scenes", type=int, default=None, help="training scenes (default: the source's)")
-    pg.add_argument("--json", action="store_true", help="print one JSON object")
-    pr = sub.add_parser("record", help="training time with and without rerun recordings (the overhead)")
-    pr.add_argument("--preset", default="cpu", help="training preset")
-    pr.add_argument("--method", default="plex-gru", help="training method")
-    pr.add_argument("--updates", type=int, default=20, help="executor updates per timed training")
-    pr.add_argument("--record-interval", type=int, default=10, help="updates between recordings in the timed run")
-    pr.add_argument("--default-interval", type=int, default=None,
-                    help="interval to extrapolate to (default: TrainConfig.record_interval)")
-    pr.add_argument("--seed", type=int, default=0)
-    pr.add_argument("--json", action="store_true", help="print one JSON object")
-    pt = sub.add_parser("train", help="end-to-end training steps/s, time shares, FLOPs and update efficiency")
-    pt.add_argument("--preset", default="cpu", help="training preset")
-    pt.add_argument("--method", default="plex-gru", help="training method")
-    pt.add_argument("--steps", type=int, default=8192, help="environment steps to train for")
-    pt.add_argument("--num-envs", type=int, default=None, help="worlds (default: the preset's)")
-    pt.add_argument("--resolution", type=int, default=None, help="image size (default: the preset's)")
-    pt.add_argument("--seed", type=int, default=0)
-    pt.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                    help="override a TrainConfig field, e.g. --set num_minibatches=4 (repeatable)")
-    pt.add_argument("--device", default="auto", help=DEVICE_HELP)
-    pt.add_argument("--json", action="store_true", help="print one JSON object")
-    pa = sub.add_parser("adam", help="ms per Adam step over the PLEX networks: per-tensor loop, foreach, fused")
-    pa.add_argument("--preset", default="cpu", help="training preset (the networks' sizes)")
-    pa.add_argument("--steps", type=int, default=20, help="steps per timed round")
-    pa.add_argument("--rounds", type=int, default=5, help="alternate the three implementations this many times")
-    pa.add_argument("--threads", type=int, default=1, help="torch threads")
-    pa.add_argument("--json", action="store_true", help="print one JSON object")
-    a = p.parse_args(argv)
+def _run(p: argparse.ArgumentParser, a: argparse.Namespace) -> dict:
+    """The benchmark the command line asks for."""
     if a.what == "adam":
         out = bench_adam(a.preset, a.steps, a.rounds, a.threads)
         out["machine"] = machine()
@@ -587,12 +641,104 @@ def main(argv: list[str] | None = None) -> None:
                            warmup=a.warmup, stop_prob=a.stop_prob, max_steps=a.max_steps)
     elif a.what == "geodesic":
         out = bench_geodesic(a.queries, a.seed, a.scenes, a.num_scenes, astar_queries=a.astar_queries)
+    elif a.what == "order":
+        out = bench_order(tuple(a.first), a.rounds, a.steps, a.num_envs, a.resolution, a.blocks,
+                          torch_env=not a.no_torch_env)
     elif a.what == "record":
         out = bench_record(a.preset, a.updates, a.record_interval, a.default_interval, a.seed, a.method)
     else:
         out = bench_env(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, aec_turns=a.aec_turns,
                         planner_stop_prob=a.planner_stop_prob, executor_stop_prob=a.executor_stop_prob,
                         num_scenes=a.num_scenes, rounds=a.rounds, warmup=a.warmup)
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = Parser(prog="python -m plex_ma.bench", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="what", required=True)
+
+    positive, at_least_0 = integer(1), integer(0)
+
+    def common(sp, steps: int, steps_help: str, min_resolution: int = 16) -> None:
+        sp.add_argument("--num-envs", type=positive, default=64, help="worlds stepped per call")
+        sp.add_argument("--resolution", type=integer(min_resolution, 1024), default=128,
+                        help="square image size in pixels")
+        sp.add_argument("--steps", type=positive, default=steps, help=steps_help)
+        sp.add_argument("--seed", type=at_least_0, default=0)
+        sp.add_argument("--scenes", default="procgen", help="scene source")
+        sp.add_argument("--num-scenes", type=positive, default=None,
+                        help="training scenes (default: all of the source's)")
+        sp.add_argument("--json", action="store_true", help="print one JSON object")
+
+    ps = sub.add_parser("sim", help="raw batched simulator throughput")
+    common(ps, 300, "batched steps to time", min_resolution=8)
+    pe = sub.add_parser("env", help="AEC env turns/s, vector env steps/s and their ratio to the raw simulator")
+    common(pe, 200, "vector env calls to time (the raw simulator gets as many)")
+    pe.add_argument("--rounds", type=positive, default=10, help="alternate the vector env and the raw simulator this "
+                    "many times (both timed in each round)")
+    pe.add_argument("--warmup", type=at_least_0, default=20, help="untimed calls of each before timing")
+    pe.add_argument("--aec-turns", type=positive, default=2000, help="AEC turns to time")
+    pe.add_argument("--planner-stop-prob", type=probability, default=0.01, help="chance that a planner action is STOP")
+    pe.add_argument("--executor-stop-prob", type=probability, default=0.1, help="chance that an executor action is STOP")
+    h = ("make_vec's batched PointNav vector env against SyncVectorEnv of single envs (default: 16 worlds at "
+         "64 px, as the cpu preset for the flat baselines)")
+    pv = sub.add_parser("gymvec", help=h, description=h)
+    common(pv, 300, "vector steps to time (each env gets as many)")
+    pv.set_defaults(num_envs=16, resolution=64)
+    pv.add_argument("--rounds", type=positive, default=10, help="alternate the two envs this many times")
+    pv.add_argument("--warmup", type=at_least_0, default=20, help="untimed steps of each before timing")
+    pv.add_argument("--stop-prob", type=probability, default=0.0, help="chance that an action is STOP (ends the episode)")
+    pv.add_argument("--max-steps", type=positive, default=500, help="actions before an episode truncates")
+    pg = sub.add_parser("geodesic", help="sub-goal distance queries: corner graphs against A*, one thread")
+    pg.add_argument("--queries", type=positive, default=4000, help="queries to time")
+    pg.add_argument("--astar-queries", type=positive, default=500, help="of those, how many A* answers too")
+    pg.add_argument("--seed", type=at_least_0, default=0)
+    pg.add_argument("--scenes", default="procgen", help="scene source")
+    pg.add_argument("--num-scenes", type=positive, default=None, help="training scenes (default: the source's)")
+    pg.add_argument("--json", action="store_true", help="print one JSON object")
+    po = sub.add_parser("order", help="env steps/s with torch or numba imported before plex_ma, in fresh processes")
+    po.add_argument("--first", nargs="+", default=["plex_ma", "torch", "numba"],
+                    help="modules to import before plex_ma, one child each (the first is the reference)")
+    po.add_argument("--rounds", type=positive, default=3, help="children per module, in rotating order")
+    po.add_argument("--steps", type=positive, default=300, help="single-env steps per timed block")
+    po.add_argument("--num-envs", type=positive, default=16, help="worlds of the vector env")
+    po.add_argument("--resolution", type=integer(36, 1024), default=64,
+                    help="square image size in pixels (at least 36, for the CNN)")
+    po.add_argument("--blocks", type=positive, default=3, help="timed blocks per child (the best counts)")
+    po.add_argument("--no-torch-env", action="store_true", help="leave out the env + CNN loop")
+    po.add_argument("--json", action="store_true", help="print one JSON object")
+    pr = sub.add_parser("record", help="training time with and without rerun recordings (the overhead)")
+    pr.add_argument("--preset", default="cpu", help="training preset")
+    pr.add_argument("--method", default="plex-gru", help="training method")
+    pr.add_argument("--updates", type=positive, default=20, help="executor updates per timed training")
+    pr.add_argument("--record-interval", type=positive, default=10, help="updates between recordings in the timed run")
+    pr.add_argument("--default-interval", type=positive, default=None,
+                    help="interval to extrapolate to (default: TrainConfig.record_interval)")
+    pr.add_argument("--seed", type=at_least_0, default=0)
+    pr.add_argument("--json", action="store_true", help="print one JSON object")
+    pt = sub.add_parser("train", help="end-to-end training steps/s, time shares, FLOPs and update efficiency")
+    pt.add_argument("--preset", default="cpu", help="training preset")
+    pt.add_argument("--method", default="plex-gru", help="training method")
+    pt.add_argument("--steps", type=positive, default=8192, help="environment steps to train for")
+    pt.add_argument("--num-envs", type=positive, default=None, help="worlds (default: the preset's)")
+    pt.add_argument("--resolution", type=integer(16, 1024), default=None, help="image size (default: the preset's)")
+    pt.add_argument("--seed", type=at_least_0, default=0)
+    pt.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a TrainConfig field, e.g. --set num_minibatches=4 (repeatable)")
+    pt.add_argument("--device", default="auto", help=DEVICE_HELP)
+    pt.add_argument("--json", action="store_true", help="print one JSON object")
+    pa = sub.add_parser("adam", help="ms per Adam step over the PLEX networks: per-tensor loop, foreach, fused")
+    pa.add_argument("--preset", default="cpu", help="training preset (the networks' sizes)")
+    pa.add_argument("--steps", type=positive, default=20, help="steps per timed round")
+    pa.add_argument("--rounds", type=positive, default=5, help="alternate the three implementations this many times")
+    pa.add_argument("--threads", type=positive, default=1, help="torch threads")
+    pa.add_argument("--json", action="store_true", help="print one JSON object")
+    a = p.parse_args(argv)
+    try:
+        out = _run(p, a)
+    except (SceneError, EpisodeFileError) as e:  # a bad --scenes: one line, no traceback
+        fail(e)
     if a.json:
         print(json.dumps(out))
     else:

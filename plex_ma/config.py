@@ -167,7 +167,7 @@ def from_dict(d: dict) -> TrainConfig:
 PRESETS: dict[str, dict] = {
     # Finishes in well under two minutes on two cores and still writes a checkpoint.
     "smoke": dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, n_pl=8, num_scenes=4,
-                  checkpoint_interval=5, ppo_epochs=2),
+                  checkpoint_interval=5, keep_checkpoints=1, ppo_epochs=2),
     # Reward-only PLEX as it learns best per CPU hour here: both agents by PPO on the reward
     # alone, after a 40k-step executor warm-up under random sub-goals in an open room. Each
     # departure from the paper and the measurement behind it: docs/results.md.
@@ -265,4 +265,4 @@ def parse(argv: list[str] | None = None) -> TrainConfig:
         default = preset_defaults(known.preset, known.method)
     except ValueError:
         default = TrainConfig()  # let tyro report the bad choice with its usual message
-    return validate(tyro.cli(TrainConfig, default=default, args=argv))
+    return validate(tyro.cli(TrainConfig, default=default, args=argv, prog="python -m plex_ma.train"))

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from plex_ma.cli import Parser
 from plex_ma.envs.sim import EpisodeFileError, SceneError, generate_episodes, load_episodes, save_episodes, scene_bank
 from plex_ma.envs.sim.episodes import CLOSE_FAR_SPLIT, DEFAULT_FILES, default_episode_file
 
@@ -81,7 +82,7 @@ def _print_summary(path: str, s: dict, out=None) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m plex_ma.episodes", description=__doc__,
+    p = Parser(prog="python -m plex_ma.episodes", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
     pm = sub.add_parser("make", help="sample episodes by Habitat's rules and write an episode file")

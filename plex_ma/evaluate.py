@@ -18,8 +18,9 @@ from pathlib import Path
 
 import torch
 
+from plex_ma.cli import Parser, fail, integer
 from plex_ma.config import DEVICE_HELP, TrainConfig
-from plex_ma.envs.sim import load_episodes
+from plex_ma.envs.sim import EpisodeFileError, SceneError, load_episodes
 from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
 from plex_ma.trainers.driver import PLANNER_KINDS
@@ -31,7 +32,7 @@ __all__ = ["METRICS", "agents_label", "episode_set", "format_table", "load_polic
 
 
 def main(argv: list[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(prog="python -m plex_ma.evaluate", description=__doc__,
+    p = Parser(prog="python -m plex_ma.evaluate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", default=None,
                    help="checkpoint file (e.g. runs/x/latest.pt, or pretrained:plex-gru); not needed when both "
@@ -44,10 +45,10 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--sample", action="store_true", help="sample the learned agents' actions (seeded) instead of greedy")
     p.add_argument("--seed", type=int, default=0, help="seeds --sample and the random stand-ins")
     p.add_argument("--split", choices=["val", "test"], default="test", help="episode set")
-    p.add_argument("--episodes", type=int, default=1000, help="how many of the set's episodes to run")
+    p.add_argument("--episodes", type=integer(1), default=1000, help="how many of the set's episodes to run")
     p.add_argument("--scenes", default=None, help="scene source (default: the one trained on)")
     p.add_argument("--episodes-file", default=None, help="a fixed episode file instead of the split's default")
-    p.add_argument("--num-envs", type=int, default=8, help="worlds run in parallel")
+    p.add_argument("--num-envs", type=integer(1), default=8, help="worlds run in parallel")
     p.add_argument("--json", default=None, help="write the summary and per-episode results here")
     p.add_argument("--record", default=None, help="also record the episodes to this .rrd file (rerun)")
     p.add_argument("--torch-threads", type=int, default=1,
@@ -60,25 +61,25 @@ def main(argv: list[str] | None = None) -> dict:
         device = resolve_device(a.device)
     except DeviceError as e:
         p.error(str(e))
-    if a.episodes < 1:
-        p.error("--episodes must be >= 1")
     needs_nets = a.checkpoint is not None or "learned" in (a.planner, a.executor)
     if a.checkpoint is None and needs_nets:
         p.error("--checkpoint is needed unless neither --planner nor --executor is learned")
     try:
         cfg, nets = load_policies(a.checkpoint, device) if a.checkpoint else (TrainConfig(), {})
     except CheckpointError as e:
-        print(f"error: {e}", file=sys.stderr)
-        raise SystemExit(2)
+        fail(e)
     if not cfg.method.startswith("plex") and (a.planner, a.executor) != ("learned", "learned"):
         p.error(f"--planner/--executor apply to PLEX; the checkpoint is {cfg.method}")
-    if a.episodes_file:
-        load_episodes(a.episodes_file)  # fail early with a clear message
-    recorder = None
-    if a.record:
-        recorder = EpisodeRecorder(a.record)
-    results = run_episodes(cfg, nets, a.split, a.episodes, a.scenes, a.num_envs, a.episodes_file, recorder,
-                           sample=a.sample, planner=a.planner, executor=a.executor, seed=a.seed)
+    try:  # a bad --scenes or --episodes-file: one line, no traceback
+        if a.episodes_file:
+            load_episodes(a.episodes_file)  # fail before anything is written
+        recorder = None
+        if a.record:
+            recorder = EpisodeRecorder(a.record)
+        results = run_episodes(cfg, nets, a.split, a.episodes, a.scenes, a.num_envs, a.episodes_file, recorder,
+                               sample=a.sample, planner=a.planner, executor=a.executor, seed=a.seed)
+    except (SceneError, EpisodeFileError) as e:
+        fail(e)
     summary = summarize(results)
     agents = agents_label(cfg, a.planner, a.executor)
     mode = "sampled" if a.sample else "greedy"

@@ -19,12 +19,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 
 import torch
 from PIL import Image
 
-from plex_ma.config import DEVICE_HELP, TrainConfig, replace
+from plex_ma.cli import Parser, fail, integer
+from plex_ma.config import DEVICE_HELP, TrainConfig, replace, validate
+from plex_ma.envs.sim import EpisodeFileError, SceneError
 from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
 from plex_ma.trainers.driver import PLANNER_KINDS
@@ -33,7 +36,7 @@ from plex_ma.viz import EpisodeRecorder
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
-    p = argparse.ArgumentParser(prog="python -m plex_ma.record", description=__doc__,
+    p = Parser(prog="python -m plex_ma.record", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", help="checkpoint file whose networks act (greedily), or pretrained:NAME")
     p.add_argument("--policy", choices=["random"], help="a random planner/executor pair instead of a checkpoint")
@@ -42,7 +45,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                         "the agent's own ego map)")
     p.add_argument("--executor", choices=["learned", "oracle", "random"], default=None,
                    help="PLEX executor (default: the checkpoint's; oracle = ground truth)")
-    p.add_argument("--episodes", type=int, default=1, help="episodes to record")
+    p.add_argument("--episodes", type=integer(1), default=1, help="episodes to record")
     p.add_argument("--out", required=True, help="the .rrd file to write")
     p.add_argument("--split", choices=["train", "val", "test"], default="val", help="scene split")
     p.add_argument("--scenes", default=None, help="scene source (default: the checkpoint's, or procgen)")
@@ -59,8 +62,6 @@ def main(argv: list[str] | None = None) -> list[dict]:
         device = resolve_device(a.device)
     except DeviceError as e:
         p.error(str(e))
-    if a.episodes < 1:
-        p.error("--episodes must be >= 1")
     if a.policy == "random":
         if a.checkpoint:
             p.error("--policy random and --checkpoint exclude each other")
@@ -69,6 +70,12 @@ def main(argv: list[str] | None = None) -> list[dict]:
     a.planner, a.executor = a.planner or "learned", a.executor or "learned"
     if not a.checkpoint and "learned" in (a.planner, a.executor):
         p.error("--checkpoint is needed unless neither --planner nor --executor is learned")
+    if not a.checkpoint:
+        try:
+            cfg = validate(replace(TrainConfig(), resolution=a.resolution, max_steps=a.max_steps,
+                                   scenes=a.scenes or "procgen"))
+        except ValueError as e:  # e.g. "config resolution=0: must be an integer in [16, 1024]"
+            p.error(re.sub(r"^config (\w+)=", lambda m: f"--{m.group(1).replace('_', '-')}=", str(e)))
     rec = EpisodeRecorder(a.out, max_episodes=a.episodes, images=not a.no_images, jpeg_quality=a.jpeg_quality,
                           spawn=a.spawn, name=None)
     # One world means batch-1 inference: more torch threads only spin (and beside other
@@ -78,13 +85,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
         try:
             cfg, nets = load_policies(a.checkpoint, device)
         except CheckpointError as e:
-            print(f"error: {e}", file=sys.stderr)
-            raise SystemExit(2)
+            fail(e)
     else:
-        cfg = replace(TrainConfig(), resolution=a.resolution, max_steps=a.max_steps, scenes=a.scenes or "procgen")
         nets = {}
-    results = run_episodes(cfg, nets, split=a.split, episodes=a.episodes, scenes=a.scenes, num_envs=1,
-                           recorder=rec, planner=a.planner, executor=a.executor, seed=a.seed)
+    try:  # a bad --scenes: one line, no traceback, no file written (the recorder starts with the env)
+        results = run_episodes(cfg, nets, split=a.split, episodes=a.episodes, scenes=a.scenes, num_envs=1,
+                               recorder=rec, planner=a.planner, executor=a.executor, seed=a.seed)
+    except (SceneError, EpisodeFileError) as e:
+        fail(e)
     if a.topdown_png and rec.episodes:
         Image.fromarray(rec.topdown(-1)).save(a.topdown_png)
     for r in rec.episodes:

@@ -21,7 +21,9 @@ from __future__ import annotations
 import json
 import sys
 
+from plex_ma.cli import fail
 from plex_ma.config import parse
+from plex_ma.envs.sim import EpisodeFileError, SceneError
 from plex_ma.trainers import distributed, make_trainer
 from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
@@ -32,13 +34,11 @@ def main(argv: list[str] | None = None) -> dict:
     try:
         cfg = parse(argv)
     except ValueError as e:  # a bad value: one line naming the flag, no traceback
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+        fail(e)
     try:
         device = resolve_device(cfg.device)
     except DeviceError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+        fail(e)
     # torchrun with WORLD_SIZE > 1: join the group (nccl, each rank on its LOCAL_RANK GPU,
     # when the networks run on CUDA; gloo on the CPU)
     ctx = distributed.init_from_env(cfg.dist_timeout, backend=None if device.type == "cuda" else "gloo")
@@ -50,9 +50,10 @@ def main(argv: list[str] | None = None) -> dict:
     with distributed.graceful_stop():
         try:
             trainer = make_trainer(cfg, record=record_training_episode)  # rerun recordings into the run dir
-        except CheckpointError as e:  # a bad --checkpoint or run dir: one line, no traceback
-            print(f"error: {e}", file=sys.stderr)
-            sys.exit(2)
+        except (CheckpointError, SceneError, EpisodeFileError) as e:
+            # a bad --checkpoint, run dir, --scenes or --episodes-file: one line, no traceback,
+            # and nothing written (the run dir is made at the first update's log)
+            fail(e)
         try:
             result = trainer.train()
         finally:

@@ -4,8 +4,10 @@ import os
 import sys
 
 import pytest
-import torch
-from hypothesis import settings
+
+import plex_ma  # noqa: F401  (before torch: its OpenMP wait policy, see plex_ma/__init__.py)
+import torch  # noqa: E402
+from hypothesis import settings  # noqa: E402
 
 # CI runs the property tests on fixed examples (``HYPOTHESIS_PROFILE=ci``, set by .ci/run),
 # so that a run's verdict depends on the code alone; a local ``make test`` draws new

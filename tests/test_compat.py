@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import pickle
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -59,10 +60,50 @@ def test_spaces_are_flat_shared_and_stable():
     assert env.unwrapped.config.eli is False
 
 
+def test_every_accessor_gives_the_same_spaces():
+    """``observation_space(agent)``, ``action_space(agent)``, the ``observation_spaces`` /
+    ``action_spaces`` dicts, and all of them on ``unwrapped`` and on the turn-based
+    parallel view: skrl and RLlib read ``unwrapped.observation_spaces``."""
+    from pettingzoo.utils.conversions import turn_based_aec_to_parallel
+
+    env = plex_nav_v0.compat_env(**SMALL)
+    par = turn_based_aec_to_parallel(plex_nav_v0.compat_env(**SMALL))
+    ob, act = env.observation_space("planner"), env.action_space("planner")
+    for view in (env, env.unwrapped, par, par.unwrapped):
+        for agent in ("planner", "executor"):
+            assert view.observation_space(agent) == ob and view.action_space(agent) == act
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # the parallel view calls the dicts deprecated
+                assert view.observation_spaces[agent] == ob and view.action_spaces[agent] == act
+    assert env.unwrapped is env and par.unwrapped is not par  # the compat env is the innermost env
+    assert env.native.observation_space("planner") != ob  # the native env keeps its own spaces
+    env.reset(seed=0)
+    assert ob.contains(env.observe("planner"))
+
+
+def test_turn_based_parallel_view_steps():
+    from pettingzoo.utils.conversions import turn_based_aec_to_parallel
+
+    par = turn_based_aec_to_parallel(plex_nav_v0.compat_env(**{**SMALL, "max_steps": 20}))
+    obs, infos = par.reset(seed=0)
+    rng = np.random.default_rng(0)
+    episodes = 0
+    for _ in range(120):
+        for a in par.agents:
+            assert par.observation_space(a).contains(obs[a])
+        # every agent gets an action its mask allows; only the acting agent's is used
+        obs, rewards, term, trunc, infos = par.step(
+            {a: int(rng.choice(np.flatnonzero(obs[a]["action_mask"]))) for a in par.agents})
+        if not par.agents:
+            episodes += 1
+            obs, infos = par.reset()
+    assert episodes >= 2
+
+
 def test_observation_layout():
     env = plex_nav_v0.compat_env(**SMALL)
     env.reset(seed=3)
-    raw = env.unwrapped
+    raw = env.native
     native_p = raw.observe("planner")
     o = env.observe("planner")
     x, mask = o["observation"], o["action_mask"]
@@ -97,7 +138,7 @@ def test_nearest_pixel_downsampling_and_options():
     assert env.observation_space("planner")["observation"].shape == (max(2 + 2048 + 2, 2 + 4 * 20 * 20 + 2),)
     env.reset(seed=0)
     env.step(3)
-    native = env.unwrapped.observe("executor")
+    native = env.native.observe("executor")
     x = env.observe("executor")["observation"]
     idx = ((np.arange(20) + 0.5) * 48 / 20).astype(int)
     np.testing.assert_allclose(x[2:2 + 400].reshape(20, 20), native["rgb"][idx][:, idx, 0] / 255, atol=1e-6)
@@ -123,7 +164,7 @@ def test_subgoal_grid():
 def test_planner_and_executor_actions_map_to_native_ones():
     env = plex_nav_v0.compat_env(**SMALL)
     env.reset(seed=0)
-    raw = env.unwrapped
+    raw = env.native
     w = raw.worlds
     ep = line_episode(raw, 2.0)
     env.reset(options={"episode": ep})

@@ -312,9 +312,13 @@ def test_directory_source_warns_and_skips(plan_dir):
         assert [s.scene_id for s in load_scenes(str(plan_dir), "train", 1)] == ["a_good"]
 
 
-def test_unknown_directory_is_unknown_source(tmp_path):
-    with pytest.raises(ValueError, match="unknown scene source"):
+def test_missing_or_empty_directory(tmp_path):
+    with pytest.raises(SceneError, match=r"scene directory '.*missing' does not exist"):
         load_scenes(str(tmp_path / "missing"), "train")
+    (tmp_path / "plan.txt").write_text("")
+    with pytest.raises(SceneError, match="is not a directory"):
+        load_scenes(str(tmp_path / "plan.txt"), "train")
+    (tmp_path / "plan.txt").unlink()
     with pytest.raises(SceneError, match="no plan files"):
         load_scenes(str(tmp_path), "train")
 

@@ -90,7 +90,7 @@ def _collect(example, frames: int, record_last: bool = False):
 
         compat.step = recording_step
     env = wrap(compat)
-    torch.set_num_threads(1)  # numba's first kernels reset torch's OpenMP threads (they share the pool)
+    torch.set_num_threads(1)  # one thread: pytest runs two workers on the two cores
     parts = example.build(env)
     collector = Collector(env, parts["policy"], frames_per_batch=frames, total_frames=frames,
                           auto_register_policy_transforms=False)

@@ -73,6 +73,67 @@ def test_resume_restores_optimizer_and_step(tmp_path, capsys):
     assert load_checkpoint(tmp_path / "run" / "latest.pt")["step"] >= 2 * cfg.total_steps
 
 
+def test_only_latest_holds_the_optimisers_and_resume_from_it_is_exact(tmp_path):
+    """Numbered checkpoints leave out the optimiser state (a third of the size); a resume
+    from latest.pt restores every bit the trainer had: weights, Adam's moments and step
+    counts, the step, the updates and the random generators."""
+    cfg = tiny(tmp_path, checkpoint_interval=1, keep_checkpoints=2)
+    t1 = make_trainer(cfg)
+    t1.train()
+    t1.close()
+    run = tmp_path / "run"
+    numbered = sorted(run.glob("ckpt_*.pt"))
+    assert len(numbered) == 2
+    full = load_checkpoint(run / "latest.pt")
+    for p in numbered:
+        state = load_checkpoint(p)
+        assert "optimizers" not in state and state.keys() == full.keys() - {"optimizers"}
+    assert numbered[-1].stat().st_size < 0.5 * (run / "latest.pt").stat().st_size
+    t2 = make_trainer(cfg)
+    assert t2.step == t1.step and t2.updates == t1.updates
+    assert torch.equal(torch.get_rng_state(), full["torch_rng"])
+    assert torch.equal(t2.gen.get_state(), t1.gen.get_state())
+    assert torch.equal(t2.planner_gen.get_state(), t1.planner_gen.get_state())
+    for k in t1.nets:
+        for (n, a), b in zip(t1.nets[k].state_dict().items(), t2.nets[k].state_dict().values()):
+            assert torch.equal(a, b), n
+        s1, s2 = t1.opts[k].state_dict(), t2.opts[k].state_dict()
+        assert s1["param_groups"] == s2["param_groups"] and s1["state"].keys() == s2["state"].keys()
+        for i in s1["state"]:
+            for name, v in s1["state"][i].items():
+                assert torch.equal(v, s2["state"][i][name]), (k, i, name)
+    t2.close()
+
+
+def test_resume_logs_each_step_once(tmp_path):
+    """Resumed from an older checkpoint (latest.pt corrupt, the newest numbered one gone), the
+    run drops the rows logged after that checkpoint (and a line cut by a crash), then logs
+    the same steps again: metrics.jsonl holds each step once."""
+    cfg = tiny(tmp_path, checkpoint_interval=1, keep_checkpoints=3)
+    t = make_trainer(cfg)
+    t.train()
+    t.close()
+    run = tmp_path / "run"
+    metrics = run / "metrics.jsonl"
+    first = [json.loads(x)["step"] for x in metrics.read_text().splitlines()]
+    assert first == sorted(set(first)) and len(first) >= 3
+    numbered = sorted(run.glob("ckpt_*.pt"))
+    (run / "latest.pt").write_bytes(b"corrupt")
+    numbered[-1].unlink()
+    resume_step = load_checkpoint(numbered[-2])["step"]
+    assert resume_step < first[-1]
+    with open(metrics, "a") as f:
+        f.write('{"step": 9')  # cut short by a crash
+    with pytest.warns(UserWarning):
+        t2 = make_trainer(cfg)
+    assert t2.step == resume_step
+    assert metrics.read_text().endswith('{"step": 9')  # nothing is rewritten before the first update
+    t2.train()
+    t2.close()
+    again = [json.loads(x)["step"] for x in metrics.read_text().splitlines()]
+    assert again == first
+
+
 def test_resume_refuses_another_method(tmp_path):
     cfg = tiny(tmp_path)
     t = make_trainer(cfg)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from collections import defaultdict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -199,11 +200,15 @@ class Trainer:
 
     def load_state(self, state: dict) -> None:
         self.load_weights(state, "the run dir's checkpoint (use another --run-dir)")
-        try:
-            for k, o in self.opts.items():
-                o.load_state_dict(state["optimizers"][k])
-        except (KeyError, RuntimeError, ValueError) as e:
-            raise CheckpointError(f"checkpoint does not match the networks: {e}") from None
+        if "optimizers" not in state:  # a numbered checkpoint (latest.pt was corrupt): see checkpoint.py
+            warnings.warn("this checkpoint holds no optimiser state (only latest.pt does): the optimisers "
+                          "restart from zero moments", stacklevel=2)
+        else:
+            try:
+                for k, o in self.opts.items():
+                    o.load_state_dict(state["optimizers"][k])
+            except (KeyError, RuntimeError, ValueError) as e:
+                raise CheckpointError(f"checkpoint does not match the networks: {e}") from None
         self.step = int(state["step"])
         self.updates = {k: int(v) for k, v in state["updates"].items()}
         torch.set_rng_state(state["torch_rng"])

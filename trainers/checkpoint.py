@@ -5,6 +5,11 @@ temporary file in the same directory, fsyncs it and renames it into place, so a 
 a full disk leaves the previous checkpoint untouched. A load that finds ``latest.pt``
 corrupt or truncated says so and falls back to the newest numbered checkpoint that loads.
 
+Only ``latest.pt`` holds the optimisers' state (Adam's two moments: twice the networks'
+size); the numbered files leave it out (:data:`LATEST_ONLY`), so each costs a third of a
+full checkpoint. A run resumed from ``latest.pt`` goes on exactly where it stopped; one
+that falls back to a numbered file restarts its optimisers, and says so.
+
 ``pretrained:NAME`` names an agent shipped inside the package (``trainers/data/pretrained/
 NAME.pt``; ``python -m plex_ma.pretrained`` lists them): a weights-only file whose weights
 are stored as float16 (loaded back as float32) beside the config and the command that
@@ -46,11 +51,16 @@ def atomic_save(obj, path: str | os.PathLike) -> None:
         raise
 
 
+# What only latest.pt holds (see the module docstring).
+LATEST_ONLY = ("optimizers",)
+
+
 def save_checkpoint(run_dir: str | os.PathLike, state: dict, number: int, keep: int = 3) -> Path:
-    """Write ``ckpt_<number>.pt`` and ``latest.pt`` atomically; prune old numbered files."""
+    """Write ``ckpt_<number>.pt`` (without :data:`LATEST_ONLY`) and ``latest.pt`` (all of
+    ``state``) atomically; prune the numbered files but the newest ``keep``."""
     run_dir = Path(run_dir)
     numbered = run_dir / f"ckpt_{number:06d}.pt"
-    atomic_save(state, numbered)
+    atomic_save({k: v for k, v in state.items() if k not in LATEST_ONLY}, numbered)
     atomic_save(state, run_dir / "latest.pt")
     for old in sorted(_numbered(run_dir))[:-keep]:
         old[1].unlink(missing_ok=True)

@@ -165,10 +165,10 @@ class BatchedSim:
         """Read the sensors of the ``active`` worlds; images are rendered where ``render``
         (default: ``active``) is set and kept from the last step elsewhere."""
         b = self.bank
-        K.render(b.kind, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, b.klo, b.khi, b.kmat, b.kroom,
-                 b.room_wall_rgb, b.room_floor_rgb, b.mat_rgb, self.scene_idx, self.pos, self.heading,
-                 self.camera_height, CEILING_HEIGHT, self.hfov, self.max_depth, self.rgb, self.depth,
-                 active if render is None else render)
+        K.pick(K.render, self.n)(b.kind, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, b.klo, b.khi, b.kmat, b.kroom,
+                                 b.room_wall_rgb, b.room_floor_rgb, b.mat_rgb, self.scene_idx, self.pos, self.heading,
+                                 self.camera_height, CEILING_HEIGHT, self.hfov, self.max_depth, self.rgb, self.depth,
+                                 active if render is None else render)
         sp, sh = self.pose_noise
         est = np.concatenate([self.pos, self.heading[:, None]], axis=1)
         if sp > 0 or sh > 0:
@@ -177,8 +177,9 @@ class BatchedSim:
             est[:, 2] = (est[:, 2] + math.pi) % (2 * math.pi) - math.pi
         self.est_pose[active] = est[active]
         if self.use_egomap:
-            K.egomap_update(self.depth, self.est_pose, self.amap_origin, self.amap, self.amap_cell, self._stride,
-                            self.hfov, self.max_depth, self.camera_height, 0.1, AGENT_HEIGHT, active)
+            K.pick(K.egomap_update, self.n)(self.depth, self.est_pose, self.amap_origin, self.amap, self.amap_cell,
+                                            self._stride, self.hfov, self.max_depth, self.camera_height, 0.1,
+                                            AGENT_HEIGHT, active)
         d = np.empty(self.n)
         K.field_lookup_batch(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.fields, self.pos, d)
         self.distance_to_goal[active] = d[active]
@@ -190,7 +191,8 @@ class BatchedSim:
             raise RuntimeError("this simulator was built with egomap=False")
         rows = np.arange(self.n) if rows is None else np.asarray(rows, np.int64).reshape(-1)
         out = np.zeros((len(rows), 2, self.ego_size, self.ego_size), np.float32)
-        K.egomap_crop(self.amap, self.amap_origin, self.amap_cell, self.est_pose, self.ego_cell, out, rows)
+        K.pick(K.egomap_crop, len(rows))(self.amap, self.amap_origin, self.amap_cell, self.est_pose, self.ego_cell,
+                                         out, rows)
         return out
 
     def polar_to(self, targets: np.ndarray, rows: np.ndarray | None = None, noisy: bool = True) -> np.ndarray:
@@ -232,9 +234,10 @@ class BatchedSim:
         with the rows filled."""
         b = self.bank
         out = np.zeros((self.n, 2))
-        K.snap_batch(b.nav, b.comp, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos,
-                     np.asarray(points, np.float64).reshape(self.n, 2), np.asarray(rows, np.int64), float(max_radius),
-                     out)
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        K.pick(K.snap_batch, len(rows))(b.nav, b.comp, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx,
+                                        self.pos, np.asarray(points, np.float64).reshape(self.n, 2), rows,
+                                        float(max_radius), out)
         return out
 
     def memory_per_world(self) -> int:

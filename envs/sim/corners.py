@@ -38,7 +38,7 @@ import sys
 import numpy as np
 from numba import njit, prange
 
-from .kernels import INF, MOVE_DC, MOVE_DR, _block, _link, astar
+from .kernels import INF, MOVE_DC, MOVE_DR, _block, _link, astar, pick, threaded
 
 for _alias in ("plex_ma.envs.sim.corners", "envs.sim.corners"):  # see kernels.py
     sys.modules.setdefault(_alias, sys.modules[__name__])
@@ -287,7 +287,7 @@ def point_distance(nav, moves, corner, clear, D, n, off, h, w, ox, oy, cs, px, p
     return best
 
 
-@njit(cache=True, parallel=True)
+@threaded()
 def distance_batch(nav, moves, corner, clear, D, d_off, n_corners, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, src,
                    dst, rows, out):
     """``out[r]`` = the geodesic distance from ``src[r]`` to ``dst[r]`` in world ``r``'s
@@ -357,5 +357,5 @@ class CornerGraphs:
         ``scene_idx[r]``, for ``r`` in ``rows`` (``kernels.INF`` if not connected)."""
         self.prepare(scene_idx[rows])
         b = self.bank
-        distance_batch(b.nav, b.moves, self.corner, self.clear, self.D, self.d_off, self.n_corners, b.off, b.h, b.w,
-                       b.ox, b.oy, b.cell_size, scene_idx, src, dst, rows, out)
+        pick(distance_batch, len(rows))(b.nav, b.moves, self.corner, self.clear, self.D, self.d_off, self.n_corners,
+                                        b.off, b.h, b.w, b.ox, b.oy, b.cell_size, scene_idx, src, dst, rows, out)

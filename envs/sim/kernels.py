@@ -15,8 +15,11 @@ length of the ray.
 from __future__ import annotations
 
 import math
+import os
 import sys
+import types
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -27,6 +30,51 @@ from numba import njit, prange
 for _alias in ("plex_ma.envs.sim.kernels", "envs.sim.kernels"):
     sys.modules.setdefault(_alias, sys.modules[__name__])
 del _alias
+
+# The parallel kernels run on numba's "workqueue" threading layer, not on GNU OpenMP
+# (numba's default where it finds no TBB). On OpenMP they ran inside torch's OpenMP
+# runtime (torch loads its libgomp into the global symbol scope, and numba's OpenMP layer
+# binds to it): imported after torch, plex_ma could no longer make its threads wait
+# passively, they spun, and beside any other busy process a vector env ran up to 30x
+# slower; fork() after a kernel killed the child ("fork() called from a process already
+# using GNU OpenMP"), which broke gymnasium's async vector envs. workqueue's threads sleep
+# on a condition variable between kernels, survive fork() and read no OMP_* setting, so
+# the import order no longer matters. The layer is fixed when the first parallel kernel
+# runs in the process; a layer the user chose (NUMBA_THREADING_LAYER, or numba.config set
+# before this import) is kept. (Like every numba setting, this one holds for the whole
+# process, so for the user's own parallel kernels too.)
+if numba.config.THREADING_LAYER == "default" and "NUMBA_THREADING_LAYER" not in os.environ:
+    numba.config.THREADING_LAYER = "workqueue"
+
+
+def threaded(**flags):
+    """``njit(cache=True, parallel=True, **flags)``, plus the same function compiled
+    without threads as the kernel's ``serial`` attribute (see :func:`pick`).
+
+    The serial twin is a copy of the Python function under its own name, so that numba's
+    on-disk cache (keyed by qualified name and line, not by the ``parallel`` flag) keeps
+    the two apart. Each loop iteration of these kernels writes its own outputs, so both
+    give the same results (``tests/test_sim_determinism.py``)."""
+
+    def wrap(fn):
+        kernel = njit(cache=True, parallel=True, **flags)(fn)
+        twin = types.FunctionType(fn.__code__, fn.__globals__, fn.__name__ + "_serial", fn.__defaults__,
+                                  fn.__closure__)
+        twin.__qualname__ = fn.__qualname__ + "_serial"
+        twin.__doc__ = fn.__doc__
+        kernel.serial = njit(cache=True, **flags)(twin)
+        return kernel
+
+    return wrap
+
+
+def pick(kernel, jobs: int):
+    """``kernel`` itself, or its serial twin where threads have nothing to share out (one
+    job: a simulator of one world) or numba runs one thread: handing a kernel to the
+    threading layer's workers costs a few tens of microseconds, as much as a one-world
+    kernel takes."""
+    return kernel.serial if jobs <= 1 or numba.get_num_threads() == 1 else kernel
+
 
 MAX_BOUNDARIES = 16
 INF = 1e30
@@ -57,7 +105,7 @@ def _shade(rgb, f):
     return (min(255.0, rgb[0] * f), min(255.0, rgb[1] * f), min(255.0, rgb[2] * f))
 
 
-@njit(cache=True, parallel=True, fastmath=True)
+@threaded(fastmath=True)
 def render(kind, g_off, g_h, g_w, g_ox, g_oy, cs, klo, khi, kmat, kroom,
            room_wall_rgb, room_floor_rgb, mat_rgb, scene_idx, pos, heading,
            cam_height, ceiling, hfov, max_depth, out_rgb, out_depth, active):
@@ -288,11 +336,11 @@ def _try_move(nav, off, h, w, ox, oy, cs, x, y, dx, dy):
     return bx, by, False
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)  # a few cell tests per world: cheaper on one thread than handed to the workers
 def move(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, heading, actions,
          forward, turn, collided):
     """Apply actions (0 stop, 1 forward, 2 left, 3 right) in place; sets ``collided``."""
-    for wi in prange(pos.shape[0]):
+    for wi in range(pos.shape[0]):
         a = actions[wi]
         collided[wi] = False
         if a == 2:
@@ -511,9 +559,9 @@ def field_lookup(nav, off, h, w, ox, oy, cs, dist, x, y):
     return best
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)  # one look-up per world: cheaper on one thread than handed to the workers
 def field_lookup_batch(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, fields, pos, out):
-    for wi in prange(pos.shape[0]):
+    for wi in range(pos.shape[0]):
         s = scene_idx[wi]
         out[wi] = field_lookup(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, fields[wi],
                                pos[wi, 0], pos[wi, 1])
@@ -658,7 +706,7 @@ def nearest_navigable(nav, comp, off, h, w, ox, oy, cs, x, y, want_comp, max_rad
     return bx, by, best < INF
 
 
-@njit(cache=True, parallel=True)
+@threaded()
 def snap_batch(nav, comp, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, points, rows, max_radius, out):
     """``out[r]`` = the nearest point to ``points[r]`` reachable from ``pos[r]`` (the agent's
     position itself if none is within ``max_radius``), for each ``r`` in ``rows``."""
@@ -685,7 +733,7 @@ EGO_EXPLORED = 1
 EGO_OBSTACLE = 2
 
 
-@njit(cache=True, parallel=True, fastmath=True)
+@threaded(fastmath=True)
 def egomap_update(depth, est_pose, map_origin, amap, map_cs, stride, hfov, max_depth,
                   cam_height, floor_eps, agent_height, active):
     """Accumulate back-projected depth points into each world's allocentric map ``amap``."""
@@ -725,7 +773,7 @@ def egomap_update(depth, est_pose, map_origin, amap, map_cs, stride, hfov, max_d
                     amap[wi, r, c] |= EGO_EXPLORED
 
 
-@njit(cache=True, parallel=True)
+@threaded()
 def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
     """Crop ``out[k]`` (2, S, S) for world ``rows[k]``: channel 0 obstacles, channel 1
     explored free space; row 0 is ahead of the agent, column 0 to its left."""

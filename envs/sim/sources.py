@@ -9,8 +9,10 @@ asked for. :data:`SOURCES` is the registry of named sources.
 
 from __future__ import annotations
 
+import os
 import zlib
 from functools import lru_cache
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -73,7 +75,13 @@ def load_scenes(scenes: str = "procgen", split: str = "train", num_scenes: int |
     found = r2v.directory_scenes(scenes, split, num_scenes)
     if found is not None:
         return found
-    raise ValueError(f"unknown scene source {scenes!r}; known: {sorted(SOURCES)} or a directory of plans")
+    known = f"a scene source is one of {sorted(SOURCES)}, a directory of plan files, or sources joined by '+'"
+    path = Path(scenes).expanduser()
+    if path.exists():
+        raise SceneError(f"scene directory {scenes!r} is not a directory ({known})")
+    if os.sep in scenes or scenes.startswith((".", "~")):
+        raise SceneError(f"scene directory {scenes!r} does not exist ({known})")
+    raise SceneError(f"unknown scene source {scenes!r}; {known}")
 
 
 @lru_cache(maxsize=16)

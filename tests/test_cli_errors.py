@@ -1,0 +1,104 @@
+"""Every user error of the command lines (train, evaluate, record, bench, episodes) is one
+line on stderr naming the problem, with exit status 2 and no traceback, and a run that
+fails before its first update leaves no run dir behind (or the given one as it was)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from plex_ma import bench, episodes, evaluate, record, train
+
+MISSING = "/nonexistent-plex-ma-scenes"
+
+
+def run(*argv: str, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", *argv], capture_output=True, text=True, timeout=300, cwd=cwd)
+
+
+def assert_one_line_error(err: str, *names: str) -> None:
+    assert "Traceback" not in err, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    for name in names:
+        assert name in lines[0], err
+
+
+@pytest.fixture
+def empty_dir(tmp_path):
+    d = tmp_path / "no-plans"
+    d.mkdir()
+    return d
+
+
+@pytest.mark.parametrize("scenes", ["missing", "empty"])
+def test_train_bad_scenes_leave_no_run_dir(tmp_path, empty_dir, scenes):
+    arg, says = (MISSING, "does not exist") if scenes == "missing" else (str(empty_dir), "no plan files")
+    out = run("plex_ma.train", "--preset", "smoke", "--scenes", arg, "--run-dir", str(tmp_path / "run"))
+    assert out.returncode == 2
+    assert_one_line_error(out.stderr, arg, says)
+    assert not (tmp_path / "run").exists()
+
+
+def test_train_leaves_a_given_run_dir_as_it_was(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "metrics.jsonl").write_text('{"step": 64}\n{"step": 128}\n')
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir()}
+    out = run("plex_ma.train", "--preset", "smoke", "--episodes-file", str(tmp_path / "none.json.gz"),
+              "--run-dir", str(run_dir))
+    assert out.returncode == 2
+    assert_one_line_error(out.stderr, "none.json.gz", "does not exist")
+    assert {p.name: p.read_bytes() for p in run_dir.iterdir()} == before
+
+
+@pytest.mark.parametrize("argv, names", [
+    (["plex_ma.evaluate", "--planner", "oracle", "--executor", "oracle", "--episodes", "2", "--scenes", MISSING],
+     [MISSING, "does not exist"]),
+    (["plex_ma.record", "--policy", "random", "--scenes", "EMPTY", "--out", "OUT"], ["EMPTY", "no plan files"]),
+    (["plex_ma.bench", "sim", "--steps", "2", "--num-envs", "2", "--scenes", MISSING], [MISSING, "does not exist"]),
+    (["plex_ma.episodes", "make", "--split", "val", "--num-episodes", "2", "--seed", "0", "--scenes", "EMPTY",
+      "--out", "OUT"], ["EMPTY", "no plan files"]),
+])
+def test_bad_scenes_in_every_cli(tmp_path, empty_dir, argv, names):
+    subs = {"EMPTY": str(empty_dir), "OUT": str(tmp_path / "out" / "file")}
+    out = run(*[subs.get(a, a) for a in argv])
+    assert out.returncode == 2
+    assert_one_line_error(out.stderr, *[subs.get(n, n) for n in names])
+    assert not (tmp_path / "out").exists()  # nothing written
+
+
+@pytest.mark.parametrize("main, argv, names", [
+    (train.main, ["--preset", "smoke", "--num-envs", "0"], ["--num-envs", "0"]),
+    (evaluate.main, ["--planner", "oracle", "--executor", "oracle", "--num-envs", "0"], ["--num-envs", "0"]),
+    (evaluate.main, ["--planner", "oracle", "--executor", "oracle", "--episodes", "many"], ["--episodes", "many"]),
+    (evaluate.main, ["--episodes", "2"], ["--checkpoint"]),
+    (record.main, ["--policy", "random", "--resolution", "0", "--out", "OUT"], ["--resolution=0"]),
+    (record.main, ["--policy", "random", "--max-steps", "0", "--out", "OUT"], ["--max-steps=0"]),
+    (record.main, ["--policy", "random", "--episodes", "0", "--out", "OUT"], ["--episodes", "0"]),
+    (bench.main, ["sim", "--num-envs", "0"], ["--num-envs", "0"]),
+    (bench.main, ["gymvec", "--steps", "0"], ["--steps", "0"]),
+    (bench.main, ["sim", "--resolution", "4"], ["--resolution", "4"]),
+    (bench.main, ["env", "--planner-stop-prob", "2"], ["--planner-stop-prob", "2"]),
+    (bench.main, ["order", "--resolution", "32"], ["--resolution", "32"]),
+    (bench.main, ["train", "--set", "no_such_field=1"], ["no_such_field"]),
+    (episodes.main, ["make", "--split", "val", "--num-episodes", "0", "--seed", "0", "--out", "OUT"],
+     ["--num-episodes", "0"]),
+])
+def test_bad_values_are_one_line(tmp_path, capsys, main, argv, names):
+    argv = [str(tmp_path / "out.rrd") if a == "OUT" else a for a in argv]
+    try:
+        code = main(argv)
+    except SystemExit as e:
+        code = e.code
+    assert code == 2
+    assert_one_line_error(capsys.readouterr().err, *names)
+    assert not list(tmp_path.iterdir())
+
+
+def test_train_help_names_the_module(capsys):
+    out = run("plex_ma.train", "--help", cwd="/")
+    assert out.returncode == 0
+    assert out.stdout.startswith("usage: python -m plex_ma.train ")

@@ -1,0 +1,54 @@
+"""The recipes of docs/trainers.md for Stable-Baselines3, skrl and RLlib: each example runs
+a few hundred steps where its library is installed, and is skipped otherwise (none of them
+is a dependency of plex-ma: they are not in the test extras, so they never replace the
+pinned torch)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.slow, pytest.mark.filterwarnings("ignore")]
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def load_example(name: str):
+    spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("depth_as_image", [False, True])
+def test_sb3_multi_input_policy(capsys, depth_as_image):
+    pytest.importorskip("stable_baselines3")
+    example = load_example("train_sb3")
+    argv = ["--total-timesteps", "256", "--n-steps", "128", "--num-envs", "2", "--num-scenes", "2",
+            "--max-steps", "50"]
+    out = example.main(argv + (["--depth-as-image"] if depth_as_image else []))
+    # rgb is an image (NatureCNN); the float depth is flattened unless encoded as uint8
+    assert out["extractors"] == {"rgb": "NatureCNN", "pointgoal": "Flatten",
+                                 "depth": "NatureCNN" if depth_as_image else "Flatten"}
+    assert out["model"].num_timesteps >= 256 and len(out["lines"]) == 1
+    assert "episodes, mean return" in capsys.readouterr().out
+
+
+def test_skrl_ippo_through_the_turn_based_conversion(capsys):
+    pytest.importorskip("skrl", minversion="2.0")
+    example = load_example("train_skrl")
+    out = example.main(["--timesteps", "300", "--rollouts", "64", "--num-scenes", "2", "--max-steps", "30"])
+    assert out["updates"] == 4 and out["episodes"] >= 2  # masked actions only: an unmasked one would raise
+    assert "IPPO updates per agent" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("view", ["env", "compat_env"])
+def test_rllib_multi_agent_ppo(capsys, view):
+    pytest.importorskip("ray.rllib")
+    example = load_example("train_rllib")
+    out = example.main(["--view", view, "--iterations", "2", "--batch", "200", "--num-scenes", "2",
+                        "--max-steps", "30"])
+    assert out["iterations"] == 2 and out["env_steps"] >= 400
+    assert "iteration 2" in capsys.readouterr().out
