@@ -1,4 +1,4 @@
-"""Shortest-path oracles for PLEX (SPEC section 7): ground-truth stand-ins for either agent.
+"""Shortest-path oracles for PLEX (docs/spec.md section 7): ground-truth stand-ins for either agent.
 
 They read the world's ground truth (the true pose, the navigable grid, the goal's
 distance field), so they are diagnostics and upper bounds, never agents that could run

@@ -1,6 +1,6 @@
 """The implementation of :mod:`plex_ma.envs.plex_nav_v0` (its module docstring is the doc
 page): ``raw_env`` holds the turn logic over one :class:`~plex_ma.envs.rules.PlexWorlds`
-world, ``env()`` adds PettingZoo's wrappers."""
+world, ``env()`` adds PettingZoo's order-enforcing wrapper."""
 
 from __future__ import annotations
 
@@ -19,7 +19,13 @@ AGENTS = ["planner", "executor"]
 
 
 def env(**kwargs) -> AECEnv:
-    """The environment with PettingZoo's standard wrappers (order enforcing, bounds)."""
+    """:class:`raw_env` in PettingZoo's order-enforcing wrapper, its only wrapper (a step
+    after the episode's end raises :class:`InvalidAction`, as ``raw_env`` does).
+
+    PettingZoo's bounds wrappers are left out: ``raw_env`` checks every action itself and
+    raises :class:`InvalidAction` naming what is wrong, where ``AssertOutOfBoundsWrapper``
+    gives a bare assertion and ``ClipOutOfBoundsWrapper`` (Box spaces only) would clip
+    silently."""
     e = raw_env(**kwargs)
     e = _OrderEnforcing(e)
     return e

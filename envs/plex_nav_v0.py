@@ -1,5 +1,4 @@
-"""
-# PLEX navigation (``plex_nav_v0``)
+"""PLEX navigation (``plex_nav_v0``): planner and executor in a two-agent PettingZoo AEC env.
 
 ```python
 from plex_ma.envs import plex_nav_v0
@@ -91,15 +90,15 @@ unchanged (`pettingzoo.test.render_test` passes headless).
 
 | argument | default | meaning |
 |---|---|---|
-| `resolution` | 128 | RGB-D image size (square) |
+| `resolution` | 128 | RGB-D image size in pixels (square, 16-1024) |
 | `n_ex` | 10 | executor actions per turn at most |
 | `max_steps` | 500 | executor actions before truncation |
 | `rho_max` | 4.0 | largest sub-goal distance (m) |
 | `eli` | True | False: the ablation; the planner always sees zeros |
-| `scenes` | "procgen" | scene source ("procgen", "r2v" or a directory of plans) |
+| `scenes` | "procgen" | scene source: "procgen", "r2v", "open-room", a mix "A+B" (e.g. "procgen+r2v"), or a directory of floor plans |
 | `split` | "train" | "train", "val" or "test" (val/test use the fixed episode files) |
-| `num_scenes` | None | scenes in the split (None: 72 train / 16 val / 16 test) |
-| `episodes_file` | None | a fixed episode file to cycle through |
+| `num_scenes` | None | scenes in the split (None: the source's default; procgen 72 train / 16 val / 16 test) |
+| `episodes_file` | None | a fixed episode file to cycle through (None: sampled for train, the split's shipped file for val/test) |
 | `pose_noise` | (0.0, 0.0) | GPS+compass Gaussian noise std (m, rad) |
 | `slack_reward`, `collision_reward`, `success_reward`, `subgoal_reward` | -0.01, -0.01, 10, 1 | reward weights |
 | `success_distance`, `subgoal_radius` | 0.2, 0.5 | metres |

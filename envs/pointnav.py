@@ -1,4 +1,4 @@
-"""``gymnasium.make("plex_ma/PointNav-v0", **config)``: the flat PointNav task (SPEC section 4).
+"""``gymnasium.make("plex_ma/PointNav-v0", **config)``: the flat PointNav task (docs/spec.md section 4).
 
 One agent in the same world, episodes, sensors and rewards as ``plex_nav_v0``.
 

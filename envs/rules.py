@@ -1,8 +1,8 @@
 """The one implementation of PLEX's turn order, rewards, episode ends and metrics.
 
-:class:`PlexWorlds` applies SPEC section 3 to N worlds of a :class:`BatchedSim`; the
+:class:`PlexWorlds` applies docs/spec.md section 3 to N worlds of a :class:`BatchedSim`; the
 AEC environment (``plex_nav_v0``) is these rules with N = 1 and the vector env is these
-rules with autoreset. :class:`PointNavWorlds` applies SPEC section 4 (one flat agent) and
+rules with autoreset. :class:`PointNavWorlds` applies docs/spec.md section 4 (one flat agent) and
 shares the episode handling, the goal-progress reward and the metrics.
 
 Turn order (per world): after a reset the planner acts. A planner action either stops
@@ -484,7 +484,7 @@ class PlexWorlds(_Worlds):
 
 
 class PointNavWorlds(_Worlds):
-    """The flat PointNav rules (SPEC section 4) over N worlds: STOP ends the episode.
+    """The flat PointNav rules (docs/spec.md section 4) over N worlds: STOP ends the episode.
 
     ``egomap``: keep each world's ego map, and add the planner's ``ego_map`` (the same as
     :meth:`PlexWorlds.planner_obs`) to the observations (for the flat policy that reads it,

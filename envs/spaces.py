@@ -1,4 +1,4 @@
-"""Observation and action spaces of the PLEX agents and the flat agent (SPEC sections 3-4).
+"""Observation and action spaces of the PLEX agents and the flat agent (docs/spec.md sections 3-4).
 
 Angles are radians, counter-clockwise, 0 = the agent's heading. Every space is built once
 per environment, so ``observation_space(agent)`` returns the same object on every call.

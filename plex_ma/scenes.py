@@ -11,7 +11,7 @@ all 1,040 with ``--split all``; for a directory every ``*.txt`` in it; for ``pro
 the split's default number of houses, or ``--num-scenes``) and reports how many load,
 why the others fail (grouped by reason), the navigable area per scene (total, and the
 largest connected component) and the geodesic distances of ``--episodes`` episodes
-sampled per scene with the simulator's own sampler (Habitat's rules, SPEC section 1),
+sampled per scene with the simulator's own sampler (Habitat's rules, docs/spec.md section 1),
 checking each episode against those rules. ``--compare procgen`` adds the same figures
 for procedural houses. ``--json OUT`` writes the summaries and the per-scene records.
 

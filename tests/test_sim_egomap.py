@@ -1,4 +1,4 @@
-"""The planner's ego map (SPEC section 2) seen from a known pose in a known room: channel 0
+"""The planner's ego map (docs/spec.md section 2) seen from a known pose in a known room: channel 0
 obstacles, channel 1 explored floor, 32x32 cells of 0.5 m, row 0 ahead, column 0 left."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """PointGoal episodes by Habitat's generator rules, and fixed episode files.
 
-Rules (Habitat's PointNav generator, SPEC section 1): start and goal are navigable and
+Rules (Habitat's PointNav generator, docs/spec.md section 1): start and goal are navigable and
 connected; the geodesic distance lies in [1, 30] m; an episode whose geodesic/euclidean
 ratio is below 1.1 is kept only with probability ``20 * (ratio - 0.98) ** 2``; the start
 heading is uniform.
