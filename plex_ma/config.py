@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import shlex
 from dataclasses import dataclass, field
 from typing import Annotated, Literal, get_args
 
@@ -253,6 +254,33 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.device in ("auto", "cpu", "cuda") or cfg.device.startswith("cuda:"), "device",
          "must be auto, cpu, cuda or cuda:N")
     return cfg
+
+
+# Fields that change where a run writes and what it shows, not what it trains.
+OUTPUT_FIELDS = frozenset({"run_dir", "progress", "record_interval", "log_interval", "checkpoint_interval",
+                           "keep_checkpoints", "dist_timeout", "device"})
+
+
+def command(cfg: TrainConfig) -> str:
+    """The ``python -m plex_ma.train`` command that trains ``cfg``: its preset and method,
+    then a flag for every field (the trainer's or its env's) that differs from them;
+    :data:`OUTPUT_FIELDS` are left out. ``parse`` of its arguments gives ``cfg`` back."""
+    base = preset_defaults(cfg.preset, cfg.method)
+    flags = ["--preset", cfg.preset, "--method", cfg.method]
+    names = [f.name for f in dataclasses.fields(TrainConfig) if f.name not in ("env", "preset", "method")]
+    names += [f.name for f in dataclasses.fields(PlexConfig) if f.init]
+    for name in names:
+        value = setting(cfg, name)
+        if name in OUTPUT_FIELDS or value == setting(base, name):
+            continue
+        flag = "--" + name.replace("_", "-")
+        if isinstance(value, bool):
+            flags.append(flag if value else "--no-" + name.replace("_", "-"))
+        elif isinstance(value, (tuple, list)):
+            flags += [flag, *map(str, value)]
+        else:
+            flags += [flag, str(value)]
+    return "python -m plex_ma.train " + " ".join(shlex.quote(f) for f in flags)
 
 
 def parse(argv: list[str] | None = None) -> TrainConfig:

@@ -1,6 +1,7 @@
 """``python -m plex_ma.pretrained``: the agents shipped inside the package.
 
-    python -m plex_ma.pretrained                      # list them: name, method, steps, how trained
+    python -m plex_ma.pretrained                      # list them: name, method, steps, how trained, and the
+                                                      # command that trains their config with this code
     python -m plex_ma.pretrained export runs/x/latest.pt --name plex-gru --command "python -m plex_ma.train ..."
 
 A shipped agent is used as ``--checkpoint pretrained:NAME`` by ``evaluate``, ``record`` and
@@ -15,6 +16,7 @@ import argparse
 import json
 import sys
 
+from plex_ma.config import command, from_dict
 from plex_ma.trainers.checkpoint import (CheckpointError, export_pretrained, load_checkpoint, pretrained_dir,
                                          pretrained_names)
 
@@ -36,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         for name in pretrained_names():
             st = load_checkpoint(f"pretrained:{name}")
-            print(f"pretrained:{name}  {st['config']['method']}  {st['step']:,} steps  trained by: {st['command']}")
+            print(f"pretrained:{name}  {st['config']['method']}  {st['step']:,} steps\n"
+                  f"  trained by: {st['command']}\n  its config with this code: {command(from_dict(st['config']))}")
         return 0
     except CheckpointError as e:
         print(f"error: {e}", file=sys.stderr)

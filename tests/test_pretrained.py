@@ -69,3 +69,21 @@ def test_planner_architecture_must_match_to_fine_tune(tmp_path):
         make_trainer(validate(cfg))
     with pytest.raises(CheckpointError, match="resolution=64 but this run asks for 48"):
         make_trainer(validate(replace(cfg, resolution=48, planner_value_iteration=True)))
+
+
+@pytest.mark.parametrize("name", ["plex-gru", "ppo-gru"])
+def test_printed_command_trains_the_shipped_config(name, capsys):
+    """``python -m plex_ma.pretrained`` prints, for each shipped agent, the train command whose
+    config equals the stored one in every field that shapes training."""
+    import dataclasses
+    import shlex
+
+    from plex_ma.config import OUTPUT_FIELDS, command, from_dict, parse
+    from plex_ma.pretrained import main
+
+    stored = from_dict(load_checkpoint(f"pretrained:{name}")["config"])
+    cmd = command(stored)
+    assert main([]) == 0 and cmd in capsys.readouterr().out
+    back = parse(shlex.split(cmd)[3:])
+    a, b = dataclasses.asdict(stored), dataclasses.asdict(back)
+    assert {k: v for k, v in a.items() if k not in OUTPUT_FIELDS} == {k: v for k, v in b.items() if k not in OUTPUT_FIELDS}
