@@ -180,8 +180,8 @@ def bench_sim(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
 def bench_geodesic(queries: int, seed: int, scenes: str = "procgen", num_scenes: int | None = None,
                    rho_max: float = 4.0, astar_queries: int = 500) -> dict:
     """Sub-goal distance queries on one thread: the corner graphs (``BatchedSim.distance_to``,
-    what the env asks after every executor move) against A* (``Geodesics.distance``) on the
-    same queries. Each query goes from a random navigable point of a random scene to a
+    what the env asks after every executor move, with its straight-line shortcut) against A*
+    (``Geodesics.distance``, with the same shortcut) on the same queries. Each query goes from a random navigable point of a random scene to a
     point up to ``rho_max`` away in a random direction, snapped as the env snaps sub-goals."""
 
 
@@ -212,8 +212,11 @@ def bench_geodesic(queries: int, seed: int, scenes: str = "procgen", num_scenes:
         numba.set_num_threads(threads)
     k = min(astar_queries, queries)
     t0 = time.perf_counter()
-    ref = np.array([geo.distance(int(sim.scene_idx[i]), sim.pos[i], targets[i]) for i in range(k)])
+    ref = np.full(queries, np.inf)
+    ref[:k] = [geo.distance(int(sim.scene_idx[i]), sim.pos[i], targets[i]) for i in range(k)]
     t_astar = time.perf_counter() - t0
+    sim._straight(targets, rows[:k], ref)  # the straight line where the agent could walk it, as distance_to
+    ref = ref[:k]
     euclid = np.hypot(*(sim.pos - targets).T)
     return {"benchmark": "geodesic", "queries": queries, "corner_graph_us_per_query": best / queries * 1e6,
             "astar_us_per_query": t_astar / k * 1e6, "astar_queries": k,

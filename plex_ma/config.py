@@ -72,6 +72,8 @@ class TrainConfig:
     """Adam learning rate (both agents)"""
     planner_lr: float | None = None
     """PLEX only: the planner's Adam learning rate (None: --lr)"""
+    anneal_lr: bool = False
+    """decay every learning rate linearly to zero at --total-steps (CleanRL's anneal_lr)"""
     rollout_steps: int = 64
     """executor (or flat agent) steps per world between its PPO updates"""
     n_pl: int = 128
@@ -172,7 +174,7 @@ PRESETS: dict[str, dict] = {
     # Reward-only PLEX as it learns best per CPU hour here: both agents by PPO on the reward
     # alone, after a 40k-step executor warm-up under random sub-goals in an open room. Each
     # departure from the paper and the measurement behind it: docs/results.md.
-    "cpu": dict(total_steps=1_024_000, num_envs=16, resolution=64, rollout_steps=64, n_pl=8, n_ex=18, torch_threads=1,
+    "cpu": dict(total_steps=2_048_000, anneal_lr=True, num_envs=16, resolution=64, rollout_steps=64, n_pl=8, n_ex=18, torch_threads=1,
                 executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_warmup_steps=40_000,
                 warmup_scenes="open-room", random_subgoal_distance=1.5, random_subgoal_angle=3.14,
                 executor_stop_penalty=-0.5, subgoal_radius=0.2, executor_stop_prior=0.15, executor_heading_prior=3.0,

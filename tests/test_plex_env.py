@@ -258,7 +258,7 @@ def test_subgoal_distance_is_the_geodesic_after_every_action():
             env.step(executor_action(a))
             blocked += a == 1 and np.array_equal(before, w.sim.pos[0])
         if env.agent_selection == "executor" or w.turn_steps[0] > 0:
-            fresh = w.sim.geodesic(0, w.sim.pos[0], w.subgoal[0])  # a fresh A*
+            fresh = w.sim.geodesic(0, w.sim.pos[0], w.subgoal[0])  # a fresh A* (or straight line)
             assert w.subgoal_dist[0] == pytest.approx(fresh, rel=0, abs=1e-4)
     assert w.steps[0] == 200
 

@@ -103,6 +103,33 @@ def reference_lookup(grid, field: np.ndarray, p) -> float:
     return best
 
 
+def reference_straight(grid, a, b) -> bool:
+    """Whether an agent at ``a`` could move straight to ``b``: every point sampled each
+    quarter cell along the segment is navigable and no step between sampled cells squeezes
+    diagonally between two blocked cells (the simulator's motion rule, restated)."""
+    cs = grid.cell_size
+    d = np.asarray(b, float) - np.asarray(a, float)
+    n = math.ceil(math.hypot(*d) / (cs * 0.25))
+    prev = grid.world_to_cell(np.asarray(a, float))
+    for k in range(1, n + 1):
+        p = np.asarray(a, float) + d * k / n
+        if not grid.is_navigable(p):
+            return False
+        rc = grid.world_to_cell(p)
+        if rc[0] != prev[0] and rc[1] != prev[1] and not grid.nav[prev[0], rc[1]] and not grid.nav[rc[0], prev[1]]:
+            return False
+        prev = rc
+    return True
+
+
+def reference_distance(grid, field: np.ndarray, a, b) -> float:
+    """The simulator's geodesic from ``a`` to ``b`` (``field`` is ``b``'s reference field):
+    the grid's, or the straight line where the agent could walk straight there."""
+    d = reference_lookup(grid, field, a)
+    e = float(np.hypot(*(np.asarray(b, float) - np.asarray(a, float))))
+    return e if e < d and reference_straight(grid, a, b) else d
+
+
 def random_navigable_point(grid, rng: np.random.Generator) -> np.ndarray:
     cells = np.flatnonzero(grid.nav.ravel())
     r, c = divmod(int(cells[rng.integers(len(cells))]), grid.shape[1])

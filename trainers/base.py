@@ -140,6 +140,7 @@ class Trainer:
         # takes a fifth of the per-tensor loop's time on one thread (`python -m plex_ma.bench adam`)
         self.opts = {k: torch.optim.Adam(m.parameters(), lr=lrs.get(k, cfg.lr), eps=1e-5, fused=True)
                      for k, m in self.nets.items()}
+        self.base_lr = {k: lrs.get(k, cfg.lr) for k in self.nets}
         self.ppo = PPOConfig(clip_coef=cfg.clip, vf_coef=cfg.value_coef, ent_coef=cfg.entropy_coef,
                              max_grad_norm=cfg.max_grad_norm, update_epochs=cfg.ppo_epochs,
                              num_minibatches=cfg.num_minibatches)
@@ -246,7 +247,17 @@ class Trainer:
 
 
     def _loop_start(self) -> RunClock:
+        self._anneal()
         return RunClock(self._progress(), time.perf_counter(), self.step)
+
+    def _anneal(self) -> None:
+        """With ``anneal_lr``, each optimiser's learning rate falls linearly from its base
+        value at step 0 to zero at ``total_steps`` (CleanRL's schedule), set before every update."""
+        if self.cfg.anneal_lr:
+            frac = max(1.0 - self.step / self.cfg.total_steps, 0.0)
+            for k, o in self.opts.items():
+                for group in o.param_groups:
+                    group["lr"] = self.base_lr[k] * frac
 
     def _finish(self, clock: RunClock) -> dict:
         """Final checkpoint; the last logged metrics with the episode statistics."""
@@ -270,6 +281,8 @@ class Trainer:
         for k, v in clock.learning.items():
             metrics[f"perf/share_learn_{k}"] = v / wall
         metrics["perf/rss_mib"] = resident_memory_mib()  # None (not logged) off Linux
+        self._anneal()  # the next update's learning rates
+        metrics |= {f"learner/{k}_lr": o.param_groups[0]["lr"] for k, o in self.opts.items()}
         if n_updates % cfg.log_interval == 0:
             self.log(metrics)
             clock.last_log = metrics

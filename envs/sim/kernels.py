@@ -376,6 +376,28 @@ def move(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, heading, actions,
             pos[wi, 1] = ny
 
 
+@njit(cache=True)  # a few hundred cell tests per world: cheaper on one thread than handed to the workers
+def straight_shortcut(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, targets, rows, dist):
+    """``dist[r] = min(dist[r], |targets[r] - pos[r]|)`` for each world ``r`` in ``rows``
+    whose agent could move straight to its target (``_try_move``'s test, the motion's own):
+    there the shortest path through free space is the straight line, which the grid's
+    octile paths and their links to cell centres overestimate by up to about 10% near
+    the point (0.205 m on the grid for 0.187 m in the open)."""
+    for k in range(rows.shape[0]):
+        wi = rows[k]
+        x = pos[wi, 0]
+        y = pos[wi, 1]
+        dx = targets[wi, 0] - x
+        dy = targets[wi, 1] - y
+        e = math.sqrt(dx * dx + dy * dy)
+        if e >= dist[wi]:
+            continue
+        s = scene_idx[wi]
+        _, _, blocked = _try_move(nav, g_off[s], g_h[s], g_w[s], g_ox[s], g_oy[s], cs, x, y, dx, dy)
+        if not blocked:
+            dist[wi] = e
+
+
 # ---------------------------------------------------------------------------------------
 # Geodesic distance: Dijkstra on the 8-connected navigable grid (no corner cutting).
 # A continuous point p is linked to the navigable centres of the 2x2 block of cells
