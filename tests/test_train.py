@@ -73,6 +73,27 @@ def test_resume_restores_optimizer_and_step(tmp_path, capsys):
     assert load_checkpoint(tmp_path / "run" / "latest.pt")["step"] >= 2 * cfg.total_steps
 
 
+def test_anneal_lr_falls_linearly_to_zero_at_the_last_step(tmp_path):
+    """--anneal-lr: each agent's learning rate is its base value x (1 - step / total_steps)
+    before every update, the planner's from --planner-lr; a resumed run with a longer
+    budget follows the new schedule."""
+    cfg = tiny(tmp_path, anneal_lr=True, lr=1e-3, planner_lr=5e-4)
+    t = make_trainer(cfg)
+    t.train()
+    t.close()
+    lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert len(lines) >= 3
+    for d in lines:
+        frac = max(1 - d["step"] / cfg.total_steps, 0.0)
+        assert d["learner/executor_lr"] == pytest.approx(1e-3 * frac)
+        assert d["learner/planner_lr"] == pytest.approx(5e-4 * frac)
+    assert lines[-1]["learner/executor_lr"] == 0.0
+    t2 = make_trainer(replace(cfg, total_steps=2 * cfg.total_steps))
+    t2._loop_start()
+    assert t2.opts["executor"].param_groups[0]["lr"] == pytest.approx(1e-3 * (1 - t2.step / (2 * cfg.total_steps)))
+    t2.close()
+
+
 def test_only_latest_holds_the_optimisers_and_resume_from_it_is_exact(tmp_path):
     """Numbered checkpoints leave out the optimiser state (a third of the size); a resume
     from latest.pt restores every bit the trainer had: weights, Adam's moments and step
