@@ -16,7 +16,7 @@ $(VENV)/.installed: pyproject.toml
 
 setup: $(VENV)/.installed
 
-# The main job: PLEX-GRU with the whole cpu preset (1,024,000 steps) on the default
+# The main job: PLEX-GRU with the whole cpu preset (2,048,000 steps) on the default
 # procedural scenes, then a greedy evaluation on 100 fixed validation episodes.
 # TRAIN_STEPS=N stops the run at N steps instead.
 TRAIN_STEPS ?=
