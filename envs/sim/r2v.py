@@ -4,6 +4,7 @@ The plans are the 1,040 hand-annotated Japanese apartment floor plans of Liu, Wu
 and Furukawa, "Raster-to-Vector: Revisiting Floorplan Transformation" (ICCV 2017),
 repository art-programmer/FloorplanTransformation, MIT licence. They ship with this
 package as one archive, ``envs/sim/data/r2v/plans.tar.xz`` (see the README there).
+docs/r2v.md describes the loader in full.
 
 Plan file format (one plan per file, the file stem is its id; tab-separated records)::
 
@@ -12,41 +13,34 @@ Plan file format (one plan per file, the file stem is its id; tab-separated reco
 Coordinates are image pixels, y pointing down. How a plan becomes a scene:
 
 * ``wall`` records are wall centre lines, :data:`WALL_THICKNESS` thick.
-* ``door`` records are openings: each is cut into the wall it lies on. A door that misses
-  its wall by at most :data:`DOOR_TOLERANCE_PX` is projected onto the nearest (nearly
-  parallel, overlapping) wall; one farther from every wall is dropped. Each door is
-  shortened by :data:`DOOR_INSET` at both ends, because the rasteriser cuts a little
-  wider than a door (``rasterize`` cuts half a wall plus one cell around it): with the
-  inset a door that runs up to a perpendicular wall cuts that wall at most to its centre
-  line, where without it the cut would go through (and a door whose cut reaches the
-  outside stays closed). The opening on the wall faces is then about 4 cm narrower than
-  the annotated door. Doors that lead outside stay closed (``rasterize`` does that).
+* ``door`` records are openings, each cut into the wall it lies on; doors that lead
+  outside stay closed. A door that misses its wall by at most :data:`DOOR_TOLERANCE_PX`
+  is projected onto the nearest (nearly parallel, overlapping) wall; one farther from
+  every wall is dropped. Each door is shortened by :data:`DOOR_INSET` at both ends, as
+  ``rasterize`` cuts half a wall plus one cell around a door: so a door that runs up to a
+  perpendicular wall cuts it at most to its centre line (a cut through an outer wall
+  would close the door), and the opening is about 4 cm narrower than the annotated door.
 * Wall ends are snapped: an end that touches no other wall but lies within
   :data:`SNAP_TOLERANCE_PX` of one is extended (or trimmed) along its own line to meet
   it, or, when its line misses, moved onto the nearest point of that wall. This closes
-  the small gaps where annotated walls nearly meet, so the apartment's outline is closed
-  and its outside (the region connected to the grid border) becomes void.
+  the apartment's outline, so its outside (connected to the grid border) becomes void.
 * Icons (furniture and fixtures) become axis-aligned boxes with a height and a furniture
   category (see ``MATERIAL_RGB`` in :mod:`.bank`): :data:`ICONS`.
 * Room labels (:data:`ROOM_LABELS`, including ``entrance``, the Japanese genkan, which
-  is floor) only anchor a room's name and are not geometry; ``point`` records
-  (zero-size markers) are ignored too. Any other category is a parse error.
+  is floor) only anchor a room's name; ``point`` records (zero-size markers) are ignored
+  too. Any other category is a parse error.
 * Pixels become metres with ``scale`` (default :data:`DEFAULT_SCALE` = 0.02 m per pixel:
   the median door is then 0.9 m wide and the median apartment 8.5 m across), y is
-  flipped so that north stays up, and the plan is translated so that its geometry
-  starts at (0, 0).
-
+  flipped so that north stays up, and the plan is translated to start at (0, 0).
   ``scale="auto"`` instead sets each plan's scale so that its median door is
-  :data:`AUTO_DOOR_WIDTH` wide (the plans were drawn at quite different resolutions;
-  see docs/r2v.md).
+  :data:`AUTO_DOOR_WIDTH` wide (the plans were drawn at quite different resolutions).
 
-**Navigable** (what :func:`validate_scene` checks, with the simulator's defaults: cells
-of 0.05 m and an agent of radius 0.1 m): the rasterised plan must have at least
-:data:`MIN_NAVIGABLE_AREA` square metres of navigable cells, and so must its largest
-navigable component (connected as the geodesic search moves). A connected region of 8 m^2 is more than 3 m across,
-so it holds episodes of the simulator's rules (geodesic distance 1 to 30 m). Smaller
-components (a closet behind a narrow door) may remain; the episode sampler only keeps
-connected start/goal pairs.
+**Navigable** (:func:`validate_scene`, with the simulator's 0.05 m cells and 0.1 m agent
+radius): the rasterised plan, and its largest navigable component (connected as the
+geodesic search moves), must each have at least :data:`MIN_NAVIGABLE_AREA` square metres
+of navigable cells. A connected region of 8 m^2 is more than 3 m across, so it holds
+episodes of the simulator's rules (geodesic distance 1 to 30 m). Smaller components (a
+closet behind a narrow door) may remain; the episode sampler keeps connected pairs only.
 
 Every problem with a plan, from an unreadable file to a plan with nothing navigable,
 raises :class:`SceneError` whose message starts with ``plan '<id>'`` and says what is
@@ -56,18 +50,16 @@ Splits: a plan's split is fixed by its id alone (:func:`split_of`): the first 8 
 of SHA-256 of the id, modulo 100: below 80 is ``train``, below 90 ``val``, the rest
 ``test`` (about 80/10/10; the exact counts are in ``envs/sim/data/r2v/index.json``).
 
-Sources (listed in :data:`.sources.SOURCES`): ``SOURCES["r2v"]`` gives the
-bundled plans of a split that load, in id order (rejects skipped), and a directory
-given as the source loads every ``*.txt`` plan in it, whatever the split, with one
-warning listing the plans that failed and why. Scenes are cached per process (callers
-share the :class:`Scene` objects: do not modify them in place).
+Sources (:data:`.sources.SOURCES`): ``"r2v"`` gives the bundled plans of a split that
+load, in id order (rejects skipped); a directory loads every ``*.txt`` plan in it, any
+split, with one warning listing the plans that failed and why. Scenes are cached per
+process (callers share the :class:`Scene` objects: do not modify them in place).
 
 Maintenance: ``python -m plex_ma.scenes pack DIR`` rebuilds the archive and its index
 (split sizes and the plans rejected, with why) from a directory of plan files, and
-``python -m plex_ma.scenes index`` rebuilds the index alone after a loader change (bump
+``python -m plex_ma.scenes index`` the index alone after a loader change (bump
 :data:`LOADER_VERSION` when the repair or the checks change which plans load).
 """
-
 from __future__ import annotations
 
 import hashlib
@@ -559,7 +551,6 @@ def directory_scenes(directory: str, split: str, num_scenes: int | None = None) 
         warnings.warn(f"scene directory {str(d)!r}: skipped {len(failed)} of {len(failed) + len(scenes)} plans "
                       f"that do not load:\n{lines}", stacklevel=3)
     return scenes if num_scenes is None else scenes[:num_scenes]
-
 
 
 # ----------------------------------------------------------------------------- packing

@@ -1,0 +1,165 @@
+"""The PLEX executor (:class:`Executor`): an RGB-D CNN (:class:`RGBDEncoder`) and a memory
+(:mod:`plex_ma.networks.memory`) to an action, the ELI and a value."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+from torch.distributions import Categorical
+
+from plex_ma.envs.rules import ELI_DIM
+from plex_ma.envs.sim.core import MOVE_FORWARD, NUM_ACTIONS, STOP, TURN_LEFT, TURN_RIGHT
+from plex_ma.networks.common import _as_tensor, _conv_out_dim, encode_polar, layer_init
+from plex_ma.networks.memory import GRUMemory, SMTMemory
+
+EXECUTOR_STOP_SLOPE = 20.0  # executor STOP logit per metre nearer the sub-goal than its stop prior
+
+
+class RGBDEncoder(nn.Module):
+    """conv 8x8/4, 4x4/2, 3x3/1 (ReLU) over RGB-D, then FC + ReLU (habitat's SimpleCNN shape)."""
+
+    def __init__(self, resolution: int, out_dim: int, channels: tuple[int, int, int] = (32, 64, 32)):
+        super().__init__()
+        self.resolution = resolution
+        self.convs = nn.Sequential(
+            layer_init(nn.Conv2d(4, channels[0], 8, stride=4)), nn.ReLU(),
+            layer_init(nn.Conv2d(channels[0], channels[1], 4, stride=2)), nn.ReLU(),
+            layer_init(nn.Conv2d(channels[1], channels[2], 3, stride=1)), nn.ReLU(),
+            nn.Flatten(),
+        )
+        n_flat = _conv_out_dim(self.convs, (4, resolution, resolution))
+        self.fc = nn.Sequential(layer_init(nn.Linear(n_flat, out_dim)), nn.ReLU())
+
+    def forward(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """rgb (N, H, W, 3) uint8, depth (N, H, W, 1) float -> (N, out_dim)."""
+        # One NHWC buffer, viewed as NCHW: the convolutions then run channels-last, and the
+        # largest tensor of the update is written once (no divide-then-concatenate copies).
+        x = torch.empty(*rgb.shape[:-1], 4, device=rgb.device)
+        torch.div(rgb, 255.0, out=x[..., :3])
+        x[..., 3:] = depth
+        return self.fc(self.convs(x.permute(0, 3, 1, 2)))
+
+
+class Executor(nn.Module):
+    """Executor: RGB-D CNN -> FC (+ goal) -> GRU or SMT memory -> 128-d output, which is
+    both the action embedding and the ELI -> 4-way action logits and a value.
+
+    ``memory="gru"``: FC 512, GRU hidden 512, then a linear layer to the 128-d output.
+    ``memory="smt"``: FC 128, SMT with ``smt_heads`` heads over up to ``smt_memory``
+    tokens, then a linear layer to the 128-d output. The output goes through tanh so the
+    ELI sent to the planner stays in [-1, 1].
+
+    ``stop_prior`` (metres, or None): the STOP logit also gets a linear skip from
+    min(sub-goal distance, 2 m), started at ``EXECUTOR_STOP_SLOPE`` x (``stop_prior`` -
+    distance) + ln 3, so an untrained executor (three other logits near 0) has p(STOP) 0.5 at
+    ``stop_prior`` m from its sub-goal, 0.9 at 0.1 m nearer and below 2% from 0.25 m
+    farther. (Trained without it under the cpu preset's STOP penalty, executors never chose
+    STOP and turned in place at their sub-goals: docs/results.md.)
+    """
+
+    goal_key = "subgoal"
+
+    def __init__(self, memory: str = "gru", resolution: int = 128, eli_dim: int = ELI_DIM,
+                 smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512, goal_skip: bool = True,
+                 stop_prior: float | None = None, extra_inputs: int = 0, heading_prior: float | None = None):
+        """``extra_inputs``: features a subclass's ``_inputs`` adds to the memory's input
+        beside the image's and the goal's (:class:`FlatMapPolicy`'s map features).
+        ``heading_prior`` (logits, or None; needs ``goal_skip``): the actor's goal inputs start
+        at MOVE_FORWARD += k cos(direction), TURN_LEFT += k sin, TURN_RIGHT -= k sin, so an
+        untrained policy turns towards its goal and moves when it faces it."""
+        super().__init__()
+        self.goal_skip = goal_skip
+        if memory not in ("gru", "smt"):
+            raise ValueError(f"memory must be 'gru' or 'smt', got {memory!r}")
+        self.memory_kind, self.resolution, self.eli_dim = memory, resolution, eli_dim
+        emb = 512 if memory == "gru" else 128
+        self.encoder = RGBDEncoder(resolution, emb)
+        if memory == "gru":
+            self.memory = GRUMemory(emb + 3 + extra_inputs, gru_hidden)
+        else:
+            self.memory = SMTMemory(emb + 3 + extra_inputs, 128, smt_heads, smt_memory)
+        self.eli_head = layer_init(nn.Linear(self.memory.out_dim, eli_dim))
+        # goal_skip: the heads also read the encoded goal vector, so that "turn towards the
+        # goal" is a simple function of their input from the first update on (through the
+        # memory alone, 3 goal inputs beside 512 image features are learnt too slowly: the
+        # policy's entropy collapsed before it did, README).
+        head_in = eli_dim + (3 if goal_skip else 0)
+        self.actor = layer_init(nn.Linear(head_in, NUM_ACTIONS), std=0.01)
+        self.critic = layer_init(nn.Linear(head_in, 1), std=1.0)
+        if heading_prior is not None:
+            if not goal_skip:
+                raise ValueError("heading_prior needs goal_skip (the actor's goal inputs)")
+            with torch.no_grad():  # goal inputs: (distance, cos, sin) after the eli_dim ELI features
+                self.actor.weight[MOVE_FORWARD, eli_dim + 1] += heading_prior
+                self.actor.weight[TURN_LEFT, eli_dim + 2] += heading_prior
+                self.actor.weight[TURN_RIGHT, eli_dim + 2] -= heading_prior
+        self.stop_skip = None
+        if stop_prior is not None:
+            self.stop_skip = nn.Linear(1, NUM_ACTIONS)
+            with torch.no_grad():
+                self.stop_skip.weight.zero_()
+                self.stop_skip.bias.zero_()
+                self.stop_skip.weight[STOP, 0] = -EXECUTOR_STOP_SLOPE
+                self.stop_skip.bias[STOP] = EXECUTOR_STOP_SLOPE * stop_prior + math.log(NUM_ACTIONS - 1)
+                # facing the sub-goal, the heading prior adds k to MOVE_FORWARD: so much more for STOP
+                self.stop_skip.bias[STOP] += heading_prior or 0.0
+
+    @property
+    def device(self) -> torch.device:
+        return self.actor.weight.device
+
+    def initial_state(self, batch: int) -> torch.Tensor:
+        return self.memory.initial_state(batch, self.device)
+
+    def _inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """Any leading dims (...) -> memory input (..., emb + 3) and encoded goal (..., 3)."""
+        dev = self.device
+        rgb = _as_tensor(obs["rgb"], dev)
+        depth = _as_tensor(obs["depth"], dev, torch.float32)
+        goal = encode_polar(_as_tensor(obs[self.goal_key], dev, torch.float32))
+        lead = rgb.shape[:-3]
+        feat = self.encoder(rgb.reshape(-1, *rgb.shape[-3:]), depth.reshape(-1, *depth.shape[-3:]))
+        return torch.cat([feat.view(*lead, -1), goal], dim=-1), goal
+
+    def _heads(self, out: torch.Tensor, goal: torch.Tensor):
+        eli = torch.tanh(self.eli_head(out))
+        h = torch.cat([eli, goal], dim=-1) if self.goal_skip else eli
+        logits = self.actor(h)
+        if self.stop_skip is not None:
+            logits = logits + self.stop_skip(goal[..., :1].clamp(max=2.0))
+        return logits, self.critic(h).squeeze(-1), eli
+
+    def forward(self, obs: dict, state: torch.Tensor, starts):
+        """One step for a batch: (logits (B, 4), value (B,), eli (B, 128), new state)."""
+        starts = _as_tensor(starts, self.device, torch.bool)
+        x, goal = self._inputs(obs)
+        out, state = self.memory.step(x, state, starts)
+        logits, value, eli = self._heads(out, goal)
+        return logits, value, eli, state
+
+    @torch.no_grad()
+    def act(self, obs: dict, state: torch.Tensor, starts, deterministic: bool = False):
+        """Rollout step: (dict(action, log_prob, value, eli), new state)."""
+        logits, value, eli, state = self(obs, state, starts)
+        dist = Categorical(logits=logits)
+        action = logits.argmax(-1) if deterministic else dist.sample()
+        return {"action": action, "log_prob": dist.log_prob(action), "value": value, "eli": eli}, state
+
+    def evaluate_sequences(self, obs_seq: dict, actions: torch.Tensor, starts: torch.Tensor,
+                           initial_state: torch.Tensor):
+        """Training pass over (T, B) sequences whose memory is ``initial_state`` before step 0
+        and is cleared where ``starts``: (log_prob, entropy, value), each (T, B)."""
+        starts = _as_tensor(starts, self.device, torch.bool)
+        x, goal = self._inputs(obs_seq)
+        out = self.memory.sequence(x, initial_state, starts)
+        logits, value, _ = self._heads(out, goal)
+        dist = Categorical(logits=logits)
+        return dist.log_prob(_as_tensor(actions, self.device).long()), dist.entropy(), value
+
+    def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
+        r = self.resolution
+        return {"rgb": torch.randint(0, 256, (batch, r, r, 3), dtype=torch.uint8, generator=generator),
+                "depth": torch.rand(batch, r, r, 1, generator=generator),
+                self.goal_key: torch.rand(batch, 2, generator=generator) * torch.tensor([5.0, 2 * math.pi]) - torch.tensor([0.0, math.pi])}

@@ -1,0 +1,64 @@
+"""The flat baselines' policies: PPO-GRU and PPO-SMT (:class:`FlatPolicy`, the executor's
+network on the end goal) and PPO-GRU+map (:class:`FlatMapPolicy`, which also reads the
+planner's ego map through its :class:`~plex_ma.networks.planner.MapEncoder`)."""
+
+from __future__ import annotations
+
+import torch
+
+from plex_ma.networks.common import _as_tensor
+from plex_ma.networks.executor import Executor
+from plex_ma.networks.planner import MapEncoder
+
+
+class FlatPolicy(Executor):
+    """Flat PointNav baselines: PPO-GRU (Savva et al. 2019) and PPO-SMT (Fang et al. 2019).
+
+    The executor's network with the end goal (``pointgoal``) in place of the sub-goal; the
+    trainer passes ``starts`` only at episode starts, so the memory spans the episode. The
+    SMT memory keeps the last 256 steps of the episode by default (episodes run up to 500
+    steps). Unlike Savva et al., the heads sit on the same 128-d output layer as the
+    executor's, so the baselines and PLEX differ only in the hierarchy.
+    """
+
+    goal_key = "pointgoal"
+    reads_ego_map = False  # the flat worlds need not keep ego maps (FlatMapPolicy's do)
+
+    def __init__(self, memory: str = "gru", resolution: int = 128, smt_memory: int = 256, **kw):
+        super().__init__(memory=memory, resolution=resolution, smt_memory=smt_memory, **kw)
+
+
+class FlatMapPolicy(FlatPolicy):
+    """PPO-GRU+map (``ppo-gru-map``): the flat PPO-GRU baseline that also reads the PLEX
+    planner's ego map, the control arm that tells the hierarchy's gain from the map's.
+
+    Observations: the flat ones and ``ego_map`` (B, C, 32, 32), the planner's (the flat worlds
+    keep it when built with ``egomap=True``). The map goes through the planner's
+    :class:`MapEncoder` (its trunk and, with ``value_iteration``, its value-iteration module,
+    which reads the point goal as the planner reads its goal), and those features enter the
+    memory beside the image features and the encoded goal; everything after the memory is
+    :class:`FlatPolicy`'s.
+    """
+
+    reads_ego_map = True
+
+    def __init__(self, memory: str = "gru", resolution: int = 128, ego_channels: int = 2,
+                 value_iteration: bool = False, **kw):
+        encoder = MapEncoder(ego_channels, value_iteration=value_iteration)
+        super().__init__(memory=memory, resolution=resolution, extra_inputs=encoder.map_dim + encoder.vin_dim, **kw)
+        self.map = encoder
+
+    def _inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        x, goal = super()._inputs(obs)
+        dev = self.device
+        ego = _as_tensor(obs["ego_map"], dev, torch.float32)
+        pointgoal = _as_tensor(obs[self.goal_key], dev, torch.float32)
+        lead = ego.shape[:-3]
+        feat = self.map(ego.reshape(-1, *ego.shape[-3:]), pointgoal.reshape(-1, 2))
+        return torch.cat([x, feat.view(*lead, -1)], dim=-1), goal
+
+    def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
+        c = self.map.convs[0].in_channels
+        # mostly unseen cells, some free and some obstacles, as an ego map reads
+        return {**super().example_obs(batch, generator),
+                "ego_map": (torch.rand(batch, c, 32, 32, generator=generator) < 0.2).float()}

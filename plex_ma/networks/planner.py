@@ -1,0 +1,224 @@
+"""The PLEX planner (:class:`Planner`) and its reading of the ego map (:class:`MapEncoder`,
+which the flat policy with the map shares)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+from torch.distributions import Categorical, Normal
+
+from plex_ma.envs.rules import ELI_DIM
+from plex_ma.networks.common import _as_tensor, _conv_out_dim, layer_init
+from plex_ma.networks.value_iteration import ValueIteration
+
+# float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
+# `|theta| <= pi` range check; clamp to the float32 just below pi instead.
+PI32 = float(np.nextafter(np.float32(np.pi), np.float32(0)))
+
+GOAL_FEATURES = 5  # planner_goal_features' width
+STOP_PRIOR_DISTANCE = 0.185  # m: an untrained planner's p(stop) is 0.5 at this goal distance
+STOP_PRIOR_SLOPE = 200.0  # stop logit - continue logit per metre nearer the goal than that
+OFFSET_FULL_DISTANCE = 1.0  # m: from here out the sub-goal heads' offsets count in full ...
+OFFSET_ZERO_DISTANCE = 0.2  # m: ... and from here in not at all (the sub-goal is the goal), linear between
+
+
+def planner_goal_features(goal: torch.Tensor) -> torch.Tensor:
+    """(B, 2) goal (distance m, direction rad) -> (B, 5): distance / 10, cos, sin, and
+    exp(-distance / 0.5) and min(distance, 2) for a fine reading near the goal (where
+    the planner decides to stop)."""
+    d, th = goal[..., 0], goal[..., 1]
+    return torch.stack([d / 10, torch.cos(th), torch.sin(th), torch.exp(-d / 0.5), d.clamp(max=2.0)], dim=-1)
+
+
+class MapEncoder(nn.Module):
+    """The planner's reading of the ego map, one definition for the PLEX planner (a subclass)
+    and the flat PPO-GRU+map policy (:class:`FlatMapPolicy`, which holds one):
+
+    - ``convs``: the paper's trunk, conv 4x4/2 and conv 3x3/1 (ReLU), flattened
+      (``map_dim`` features);
+    - ``vin`` (with ``value_iteration``, else None): a :class:`ValueIteration` module over
+      the map and the goal (``vin_dim`` features, which end with its sub-goal as (distance /
+      ``SUBGOAL_REACH``, cos, sin)).
+    """
+
+    def __init__(self, ego_channels: int = 2, channels: tuple[int, int] = (32, 64), map_size: int = 32,
+                 value_iteration: bool = False):
+        super().__init__()
+        self.convs = nn.Sequential(
+            layer_init(nn.Conv2d(ego_channels, channels[0], 4, stride=2)), nn.ReLU(),
+            layer_init(nn.Conv2d(channels[0], channels[1], 3, stride=1)), nn.ReLU(),
+            nn.Flatten(),
+        )
+        self.map_dim = _conv_out_dim(self.convs, (ego_channels, map_size, map_size))
+        self.vin = ValueIteration(ego_channels, map_size) if value_iteration else None
+        self.vin_dim = self.vin.out_dim if self.vin is not None else 0
+
+    def read_map(self, ego: torch.Tensor, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None,
+                                                                          torch.Tensor | None]:
+        """ego (B, C, S, S), goal (B, 2) = (distance m, direction rad) -> the trunk's features
+        (B, map_dim), the value-iteration features (B, vin_dim) and its sub-goal (B, 2) =
+        (distance m, direction rad) (both None without the module)."""
+        if self.vin is None:
+            return self.convs(ego), None, None
+        return self.convs(ego), *self.vin(ego, goal)
+
+    def forward(self, ego: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+        """(B, map_dim + vin_dim): the trunk's and the value-iteration module's features."""
+        trunk, vin, _ = self.read_map(ego, goal)
+        return trunk if vin is None else torch.cat([trunk, vin], dim=1)
+
+
+class Planner(MapEncoder):
+    """Planner: ego map CNN + ELI + goal -> 512 -> (+ goal) -> MLP heads: stop logits,
+    Gaussian sub-goal, value.
+
+    The paper gives the trunk (conv 4x4/2, conv 3x3/1, flatten, concatenate the ELI, FC 512,
+    concatenate the goal vector) and leaves the heads open. Here the goal features
+    (:func:`planner_goal_features`) also enter the FC layer, so that map and goal interact,
+    and each head is an MLP (``head_hidden`` units) over (trunk, goal features). With linear
+    heads on (distance, cos, sin), as the text reads literally, the sub-goal direction cannot
+    follow the goal's, and a planner trained over the oracle executor reached success 0.00
+    where these heads reached 0.83 (docs/results.md).
+
+    The heads answer relative to the goal and start goal-directed:
+    - sub-goal mean = (min(goal distance, ``prior_distance``), goal direction) + the head's
+      output x a scale that rises linearly from 0 at ``OFFSET_ZERO_DISTANCE`` (0.2 m) to 1 at
+      ``OFFSET_FULL_DISTANCE`` (1 m) from the goal, so an untrained planner points at the
+      goal, ``prior_distance`` (1.5 m) away at most, directions wrap round the goal's
+      direction rather than round +-pi, and near the goal the sub-goal is the goal up to an
+      offset that shrinks to nothing (with unscaled offsets, trained planners set sub-goals
+      0.1-0.17 m away when the goal was 0.2-0.3 m away, which an executor treats as reached,
+      and timed out there: docs/results.md);
+    - stop logits = the head's output + a linear skip from the goal features, started at
+      ``STOP_PRIOR_SLOPE`` x (``STOP_PRIOR_DISTANCE`` - distance): p(stop) is 0.73 at 0.18 m,
+      0.27 at 0.19 m and below 2% beyond 0.205 m, so a greedy planner stops where a stop
+      succeeds (< 0.2 m); the head's learned output moves that threshold by only 5 mm per
+      unit of logit.
+
+    The map reading (the trunk's convolutions and the value-iteration module) is
+    :class:`MapEncoder`'s, whose ``forward`` this class's replaces.
+
+    Sub-goal action: the policy samples an *unbounded* raw (rho, theta) from two Gaussians
+    with state-dependent means and state-independent learnable log-stds (started at std
+    ``init_std``). The raw sample is what the rollout buffer stores and what ``log_prob`` is
+    computed on; only the copy sent to the environment is mapped into the action box by
+    ``subgoal_to_env``: rho is clipped to [0, rho_max] and theta is wrapped to [-pi, pi]
+    (wrapping, unlike clipping, keeps the direction the sample points to).
+    """
+
+    def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
+                 rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
+                 map_size: int = 32, init_std: float = 0.5, prior_distance: float = 1.5, head_hidden: int = 256,
+                 value_iteration: bool = False):
+        # ``convs`` and ``vin`` (the map reading) keep their names: checkpoints key on them
+        super().__init__(ego_channels, channels, map_size, value_iteration)
+        self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
+        self.prior_distance = min(prior_distance, rho_max)
+        self.fc = nn.Sequential(layer_init(nn.Linear(self.map_dim + eli_dim + GOAL_FEATURES + self.vin_dim, hidden)),
+                                nn.ReLU())
+        feat = hidden + GOAL_FEATURES
+
+        def mlp(out, std):
+            return nn.Sequential(layer_init(nn.Linear(feat, head_hidden)), nn.ReLU(),
+                                 layer_init(nn.Linear(head_hidden, out), std=std))
+
+        self.stop_logits, self.subgoal_mean, self.critic = mlp(2, 0.01), mlp(2, 0.01), mlp(1, 1.0)
+        self.stop_skip = nn.Linear(GOAL_FEATURES, 2)
+        with torch.no_grad():
+            self.stop_skip.weight.zero_()
+            self.stop_skip.bias.zero_()
+            # stop logit - continue logit ~ slope * (prior distance - min(goal distance, 2)) (goal feature 4)
+            self.stop_skip.weight[1, 4] = -STOP_PRIOR_SLOPE
+            self.stop_skip.bias[1] = STOP_PRIOR_SLOPE * STOP_PRIOR_DISTANCE
+        self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
+
+    def features(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(B, hidden + GOAL_FEATURES): the trunk's output and the goal features; and the
+        value-iteration module's sub-goal (B, 2) (None without the module)."""
+        dev = self.convs[0].weight.device
+        ego = _as_tensor(obs["ego_map"], dev, torch.float32)
+        goal = planner_goal_features(_as_tensor(obs["goal"], dev, torch.float32))
+        if self.use_eli:
+            # Stop-gradient (paper 3, SPEC 5): the planner's loss must never reach the
+            # executor's parameters, so the ELI always enters the planner detached.
+            eli = _as_tensor(obs["eli"], dev, torch.float32).detach()
+        else:
+            eli = torch.zeros(ego.shape[0], self.eli_dim, device=dev)
+        trunk, vin_features, vin_subgoal = self.read_map(ego, _as_tensor(obs["goal"], dev, torch.float32))
+        parts = [trunk, eli, goal] + ([vin_features] if vin_features is not None else [])
+        h = self.fc(torch.cat(parts, dim=1))
+        return torch.cat([h, goal], dim=1), vin_subgoal
+
+    def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
+        """(stop distribution, sub-goal distribution over raw (rho, theta), value (B,))."""
+        h, vin_subgoal = self.features(obs)
+        goal = _as_tensor(obs["goal"], h.device, torch.float32)
+        stop = Categorical(logits=self.stop_logits(h) + self.stop_skip(h[:, -GOAL_FEATURES:]))
+        prior = torch.stack([goal[:, 0].clamp(max=self.prior_distance), goal[:, 1]], dim=1)
+        scale = ((goal[:, :1] - OFFSET_ZERO_DISTANCE) / (OFFSET_FULL_DISTANCE - OFFSET_ZERO_DISTANCE)).clamp(0.0, 1.0)
+        if vin_subgoal is not None:
+            # the value-iteration module's sub-goal, blended into the goal with the same
+            # scale as the offsets (its direction taken the short way round from the goal's)
+            turn = torch.atan2(torch.sin(vin_subgoal[:, 1] - goal[:, 1]), torch.cos(vin_subgoal[:, 1] - goal[:, 1]))
+            vin_prior = torch.stack([vin_subgoal[:, 0], goal[:, 1] + turn], dim=1)
+            prior = prior + scale * (vin_prior - prior)
+        mean = self.subgoal_mean(h) * scale + prior
+        subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
+        return stop, subgoal, self.critic(h).squeeze(-1)
+
+    @staticmethod
+    def _log_prob_entropy(stop_d: Categorical, sub_d: Normal, stop: torch.Tensor, subgoal: torch.Tensor):
+        # The sub-goal only matters when the planner continues (stop == 0), so its
+        # log-prob only counts then. The entropy is H(stop) + H(subgoal), not the joint's
+        # exact H(stop) + p(continue) H(subgoal): the latter would let the entropy bonus
+        # push p(continue) up and bias the agent against stopping.
+        cont = (stop == 0).float()
+        log_prob = stop_d.log_prob(stop) + cont * sub_d.log_prob(subgoal).sum(-1)
+        entropy = stop_d.entropy() + sub_d.entropy().sum(-1)
+        return log_prob, entropy
+
+    def subgoal_to_env(self, subgoal: torch.Tensor) -> torch.Tensor:
+        """Map raw samples into the action box: rho clipped to [0, rho_max], theta wrapped."""
+        rho = subgoal[..., 0].clamp(0.0, self.rho_max)
+        theta = torch.atan2(torch.sin(subgoal[..., 1]), torch.cos(subgoal[..., 1])).clamp(-PI32, PI32)
+        return torch.stack([rho, theta], dim=-1)
+
+    @torch.no_grad()
+    def act(self, obs: dict, deterministic: bool = False) -> dict:
+        """One decision per env: stop (B,) long, subgoal (B, 2) raw sample (store this),
+        subgoal_env (B, 2) mapped into the action box (send this), log_prob (B,), value (B,)."""
+        stop_d, sub_d, value = self(obs)
+        if deterministic:
+            stop, subgoal = stop_d.probs.argmax(-1), sub_d.mean
+        else:
+            stop, subgoal = stop_d.sample(), sub_d.sample()
+        log_prob, _ = self._log_prob_entropy(stop_d, sub_d, stop, subgoal)
+        return {"stop": stop, "subgoal": subgoal, "subgoal_env": self.subgoal_to_env(subgoal),
+                "log_prob": log_prob, "value": value}
+
+    def evaluate_actions(self, obs: dict, stop: torch.Tensor, subgoal: torch.Tensor):
+        """(log_prob, entropy, value), each (B,), for stored actions (raw sub-goal samples)."""
+        stop_d, sub_d, value = self(obs)
+        log_prob, entropy = self._log_prob_entropy(stop_d, sub_d, stop.long(), subgoal)
+        return log_prob, entropy, value
+
+    def imitation_loss(self, obs: dict, stop: torch.Tensor, subgoal: torch.Tensor) -> torch.Tensor:
+        """(B,) negative log-likelihood of a teacher's decisions: its stop (B,) and, where
+        it continues, its sub-goal (B, 2) in the env's (rho, theta). Each theta is matched
+        with the one of its 2 pi copies nearest the predicted mean, as raw samples are
+        unbounded and only their wrapped copy reaches the env."""
+        stop_d, sub_d, _ = self(obs)
+        mean = sub_d.mean
+        theta = subgoal[:, 1] + 2 * math.pi * torch.round((mean[:, 1].detach() - subgoal[:, 1]) / (2 * math.pi))
+        target = torch.stack([subgoal[:, 0], theta], dim=1)
+        log_prob, _ = self._log_prob_entropy(stop_d, sub_d, stop.long(), target)
+        return -log_prob
+
+    def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
+        c, s = self.convs[0].in_channels, 32
+        return {"ego_map": torch.rand(batch, c, s, s, generator=generator),
+                "goal": torch.rand(batch, 2, generator=generator) * torch.tensor([10.0, 2 * math.pi]) - torch.tensor([0.0, math.pi]),
+                "eli": torch.randn(batch, self.eli_dim, generator=generator)}
