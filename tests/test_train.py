@@ -442,7 +442,7 @@ def test_plex_learns_to_reach_the_goal_from_the_reward_alone(tmp_path):
     cfg = replace(
         preset_defaults("cpu"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1, max_steps=100,
         num_envs=8, rollout_steps=32, planner_warmup_steps=4_000, total_steps=20_000, progress=False,
-        checkpoint_interval=1000, record_interval=0)
+        checkpoint_interval=1000, record_interval=0, anneal_lr=False)  # constant rates: 20k steps is no schedule
     assert cfg.teacher_subgoal_steps == 0 and cfg.planner_imitation_steps == 0
     t = make_trainer(validate(cfg))
     t.train()
