@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from plex_ma.networks import ELI_DIM, Executor, FlatMapPolicy, FlatPolicy, Planner
+from plex_ma.networks import ELI_DIM, SUBGOAL_MARGIN, Executor, FlatMapPolicy, FlatPolicy, Planner
+from plex_ma.trainers.base import build_policies
 from plex_ma.trainers.ppo import RolloutBuffer
 
 
@@ -198,6 +199,19 @@ def test_flops_and_matmul_speed(planner):
     assert matmul_gflops(n=256, seconds=0.05) > 0
 
 
+def test_planner_sets_no_subgoal_within_the_executors_radius():
+    """Given the executor's sub-goal radius, the sub-goals sent to the env lie at least
+    SUBGOAL_MARGIN beyond it (a nearer one pays the executor nothing), whatever the sample;
+    the raw sample, on which the log-prob is computed, is left as it was."""
+    raw = torch.tensor([[-0.3, 0.5], [0.0, 1.0], [0.1, -1.0], [0.3, 2.0], [5.0, 0.0]])
+    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64, subgoal_radius=0.2)
+    assert pl.subgoal_to_env(raw)[:, 0].tolist() == pytest.approx([0.25, 0.25, 0.25, 0.3, 4.0])
+    assert Planner(rho_max=4.0, channels=(8, 8), hidden=64).subgoal_to_env(raw)[:, 0].tolist() == pytest.approx(
+        [0.0, 0.0, 0.1, 0.3, 4.0])
+    from plex_ma.config import preset_defaults
+    assert build_policies(preset_defaults("cpu"))["planner"].min_subgoal_distance == pytest.approx(0.2 + SUBGOAL_MARGIN)
+
+
 def test_planner_heads_start_goal_relative():
     """The heads start goal-relative: an untrained planner's mean sub-goal is (min(d, 1.5 m),
     the goal's direction) whatever the map, it stops near the goal and rarely elsewhere."""
@@ -212,11 +226,14 @@ def test_planner_heads_start_goal_relative():
     d = obs["goal"][:, 0]
     assert (p_stop[d < 0.1] > 0.4).all() and (p_stop[d > 0.3] < 0.02).all()
     # greedy, it stops where a stop succeeds (success: within 0.2 m) and nowhere farther out
-    near = pl.example_obs(4)
-    near["goal"] = torch.tensor([[0.05, 0.0], [0.18, 1.0], [0.19, 0.5], [0.2, -2.0], [0.3, 3.0]])
-    near["ego_map"], near["eli"] = near["ego_map"][[0, 1, 2, 3, 0]], near["eli"][[0, 1, 2, 3, 0]]
-    greedy = pl.act(near, deterministic=True)["stop"]
-    assert greedy.tolist() == [1, 1, 0, 0, 0]
+    near = pl.example_obs(5)
+    near["goal"] = torch.tensor([[0.05, 0.0], [0.18, 1.0], [0.194, 0.5], [0.2, -2.0], [0.3, 3.0]])
+    assert pl.act(near, deterministic=True)["stop"].tolist() == [1, 1, 1, 0, 0]
+    # ... and the threshold follows the success distance it is built for
+    wide = Planner(rho_max=4.0, channels=(8, 8), hidden=64, stop_distance=0.36)
+    wide.load_state_dict({k: v for k, v in pl.state_dict().items() if not k.startswith("stop_skip")}, strict=False)
+    near["goal"][:, 0] = torch.tensor([0.05, 0.3, 0.35, 0.36, 0.4])
+    assert wide.act(near, deterministic=True)["stop"].tolist() == [1, 1, 1, 0, 0]
     # the map and the ELI move the heads' output away from the goal-directed start only by learning
     obs["ego_map"] = torch.rand_like(obs["ego_map"])
     torch.testing.assert_close(pl(obs)[1].mean[:, 1], obs["goal"][:, 1], atol=0.05, rtol=0)

@@ -65,8 +65,10 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     encoder as --planner-value-iteration sets it)."""
     memory = cfg.method.split("-")[1]
     if cfg.method.startswith("plex"):
-        return {"planner": Planner(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max,
-                                   value_iteration=cfg.planner_value_iteration),
+        planner = Planner(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max, stop_distance=cfg.env.success_distance,
+                          subgoal_radius=cfg.env.subgoal_radius,
+                          value_iteration=cfg.planner_value_iteration)
+        return {"planner": planner,
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip,
                                      stop_prior=cfg.executor_stop_prior, heading_prior=cfg.executor_heading_prior)}

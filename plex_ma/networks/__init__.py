@@ -37,7 +37,7 @@ from plex_ma.networks.executor import EXECUTOR_STOP_SLOPE, Executor, RGBDEncoder
 from plex_ma.networks.flat import FlatMapPolicy, FlatPolicy
 from plex_ma.networks.memory import GRUMemory, MultiHeadAttention, SMTMemory
 from plex_ma.networks.planner import (GOAL_FEATURES, OFFSET_FULL_DISTANCE, OFFSET_ZERO_DISTANCE, PI32,
-                                      STOP_PRIOR_DISTANCE, STOP_PRIOR_SLOPE, MapEncoder, Planner,
+                                      STOP_PRIOR_MARGIN, STOP_PRIOR_SLOPE, SUBGOAL_MARGIN, MapEncoder, Planner,
                                       planner_goal_features)
 from plex_ma.networks.value_iteration import (BELLMAN_UNREACHED, DIAGONALS, EGO_CELL, SUBGOAL_REACH, ValueIteration,
                                               bellman, bellman_reference)
@@ -47,7 +47,7 @@ __all__ = [
     "EXECUTOR_STOP_SLOPE", "Executor", "RGBDEncoder",
     "FlatMapPolicy", "FlatPolicy",
     "GRUMemory", "MultiHeadAttention", "SMTMemory",
-    "GOAL_FEATURES", "OFFSET_FULL_DISTANCE", "OFFSET_ZERO_DISTANCE", "PI32", "STOP_PRIOR_DISTANCE",
+    "GOAL_FEATURES", "OFFSET_FULL_DISTANCE", "OFFSET_ZERO_DISTANCE", "PI32", "STOP_PRIOR_MARGIN", "SUBGOAL_MARGIN",
     "STOP_PRIOR_SLOPE", "MapEncoder", "Planner", "planner_goal_features",
     "BELLMAN_UNREACHED", "DIAGONALS", "EGO_CELL", "SUBGOAL_REACH", "ValueIteration", "bellman",
     "bellman_reference",

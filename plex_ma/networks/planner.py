@@ -19,8 +19,9 @@ from plex_ma.networks.value_iteration import ValueIteration
 PI32 = float(np.nextafter(np.float32(np.pi), np.float32(0)))
 
 GOAL_FEATURES = 5  # planner_goal_features' width
-STOP_PRIOR_DISTANCE = 0.185  # m: an untrained planner's p(stop) is 0.5 at this goal distance
+STOP_PRIOR_MARGIN = 0.005  # m: an untrained planner's p(stop) is 0.5 this far inside the success distance
 STOP_PRIOR_SLOPE = 200.0  # stop logit - continue logit per metre nearer the goal than that
+SUBGOAL_MARGIN = 0.05  # m: sub-goals lie at least this far beyond the executor's sub-goal radius
 OFFSET_FULL_DISTANCE = 1.0  # m: from here out the sub-goal heads' offsets count in full ...
 OFFSET_ZERO_DISTANCE = 0.2  # m: ... and from here in not at all (the sub-goal is the goal), linear between
 
@@ -93,10 +94,10 @@ class Planner(MapEncoder):
       0.1-0.17 m away when the goal was 0.2-0.3 m away, which an executor treats as reached,
       and timed out there: docs/results.md);
     - stop logits = the head's output + a linear skip from the goal features, started at
-      ``STOP_PRIOR_SLOPE`` x (``STOP_PRIOR_DISTANCE`` - distance): p(stop) is 0.73 at 0.18 m,
-      0.27 at 0.19 m and below 2% beyond 0.205 m, so a greedy planner stops where a stop
-      succeeds (< 0.2 m); the head's learned output moves that threshold by only 5 mm per
-      unit of logit.
+      ``STOP_PRIOR_SLOPE`` x (``stop_distance`` - ``STOP_PRIOR_MARGIN`` - distance): with the
+      success distance 0.2 m, p(stop) is 0.73 at 0.19 m, 0.27 at 0.2 m and below 2% beyond
+      0.215 m, so a greedy planner stops where a stop succeeds (< 0.2 m); the head's learned
+      output moves that threshold by only 5 mm per unit of logit.
 
     The map reading (the trunk's convolutions and the value-iteration module) is
     :class:`MapEncoder`'s, whose ``forward`` this class's replaces.
@@ -105,18 +106,24 @@ class Planner(MapEncoder):
     with state-dependent means and state-independent learnable log-stds (started at std
     ``init_std``). The raw sample is what the rollout buffer stores and what ``log_prob`` is
     computed on; only the copy sent to the environment is mapped into the action box by
-    ``subgoal_to_env``: rho is clipped to [0, rho_max] and theta is wrapped to [-pi, pi]
-    (wrapping, unlike clipping, keeps the direction the sample points to).
+    ``subgoal_to_env``: rho is clipped to [``min_subgoal_distance``, rho_max] and theta is
+    wrapped to [-pi, pi] (wrapping, unlike clipping, keeps the direction the sample points
+    to). Given the executor's ``subgoal_radius``, ``min_subgoal_distance`` lies
+    ``SUBGOAL_MARGIN`` beyond it: a nearer sub-goal pays the executor nothing
+    (envs/rules.py), so it would STOP on the spot, and a greedy planner that does not stop
+    there would repeat it until the time-out.
     """
 
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
                  map_size: int = 32, init_std: float = 0.5, prior_distance: float = 1.5, head_hidden: int = 256,
-                 value_iteration: bool = False):
+                 value_iteration: bool = False, stop_distance: float = 0.2, subgoal_radius: float | None = None):
         # ``convs`` and ``vin`` (the map reading) keep their names: checkpoints key on them
         super().__init__(ego_channels, channels, map_size, value_iteration)
         self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
         self.prior_distance = min(prior_distance, rho_max)
+        # no sub-goal within the executor's radius (None: any distance)
+        self.min_subgoal_distance = 0.0 if subgoal_radius is None else min(subgoal_radius + SUBGOAL_MARGIN, rho_max)
         self.fc = nn.Sequential(layer_init(nn.Linear(self.map_dim + eli_dim + GOAL_FEATURES + self.vin_dim, hidden)),
                                 nn.ReLU())
         feat = hidden + GOAL_FEATURES
@@ -130,9 +137,9 @@ class Planner(MapEncoder):
         with torch.no_grad():
             self.stop_skip.weight.zero_()
             self.stop_skip.bias.zero_()
-            # stop logit - continue logit ~ slope * (prior distance - min(goal distance, 2)) (goal feature 4)
+            # stop logit - continue logit ~ slope * (stop distance - margin - min(goal distance, 2)) (goal feature 4)
             self.stop_skip.weight[1, 4] = -STOP_PRIOR_SLOPE
-            self.stop_skip.bias[1] = STOP_PRIOR_SLOPE * STOP_PRIOR_DISTANCE
+            self.stop_skip.bias[1] = STOP_PRIOR_SLOPE * (stop_distance - STOP_PRIOR_MARGIN)
         self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
 
     def features(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -181,8 +188,9 @@ class Planner(MapEncoder):
         return log_prob, entropy
 
     def subgoal_to_env(self, subgoal: torch.Tensor) -> torch.Tensor:
-        """Map raw samples into the action box: rho clipped to [0, rho_max], theta wrapped."""
-        rho = subgoal[..., 0].clamp(0.0, self.rho_max)
+        """Map raw samples into the action box: rho clipped to [min_subgoal_distance, rho_max],
+        theta wrapped."""
+        rho = subgoal[..., 0].clamp(self.min_subgoal_distance, self.rho_max)
         theta = torch.atan2(torch.sin(subgoal[..., 1]), torch.cos(subgoal[..., 1])).clamp(-PI32, PI32)
         return torch.stack([rho, theta], dim=-1)
 
