@@ -23,8 +23,7 @@ navigation does: cells never seen count as free, observed obstacle cells are blo
   it has not seen. A goal nearer than ``lookahead`` is the sub-goal only when such a line
   reaches it; otherwise the path is planned as for a far goal.
 
-It is a baseline, a teacher for the learned planner (``--teacher map``) and a diagnostic:
-``python -m plex_ma.evaluate --planner map --executor oracle``.
+It is a baseline and a diagnostic: ``python -m plex_ma.evaluate --planner map --executor oracle``.
 """
 
 from __future__ import annotations

@@ -48,14 +48,6 @@ class TrainConfig:
     """PLEX only: scene source during the planner warm-up (e.g. open-room, where random sub-goals are reachable); None: --scenes"""
     warmup_max_steps: int = 40
     """PLEX only: agent actions per episode on --warmup-scenes (short episodes keep the agent away from walls, where snapped sub-goals are trivially close)"""
-    teacher: Literal["map", "map-los", "oracle"] = "map"
-    """PLEX only: the planner that sets the sub-goals during --teacher-subgoal-steps and that the learned planner imitates during --planner-imitation-steps: map (shortest paths on the agent's own ego map, the learned planner's observations only), map-los (the same, with each sub-goal in a straight line over floor the agent has seen) or oracle (shortest paths in the true map, ground truth)"""
-    teacher_subgoal_steps: int = 0
-    """PLEX only: after the warm-up, environment steps in the training scenes during which the --teacher planner sets the sub-goals and only the executor learns"""
-    planner_imitation_steps: int = 0
-    """PLEX only: then environment steps during which the planner learns by PPO and by imitating the --teacher planner's decisions in the states it visits (DAgger with the learner acting), beside the executor"""
-    imitation_minibatches: int = 8
-    """PLEX only: during --planner-imitation-steps, minibatches of 128 decisions drawn from the aggregate of the last 20,000 (with the teacher's decisions) for imitation steps after each executor rollout"""
     preset: Preset = "cpu"
     """defaults to start from: smoke (< 2 min), cpu (best per CPU hour here), paper (256 px, paper settings)"""
     total_steps: int = 2_000_000
@@ -127,7 +119,7 @@ class TrainConfig:
     torch_threads: int = 0
     """torch intra-op threads (0: torch's default)"""
     parallel_updates: bool = True
-    """PLEX only: the planner learns (PPO update, imitation steps) on a second thread while the executor's PPO update runs (single-process runs; under torchrun they take turns)"""
+    """PLEX only: the planner's PPO update runs on a second thread beside the executor's (single-process runs; under torchrun they take turns)"""
     device: str = "auto"
     """where the networks, rollouts and PPO updates run: auto (CUDA when present), cpu, cuda or cuda:N (the simulator stays on the CPU)"""
     progress: bool = True
@@ -186,7 +178,7 @@ PRESETS: dict[str, dict] = {
 # A preset's settings for the PLEX methods only, over PRESETS (the flat baselines keep those);
 # the speed behind them is in docs/results.md.
 PLEX_PRESETS: dict[str, dict] = {
-    "cpu": dict(num_envs=32, rollout_steps=32, resolution=48, ppo_epochs=1, imitation_minibatches=1),
+    "cpu": dict(num_envs=32, rollout_steps=32, resolution=48, ppo_epochs=1),
 }
 
 
@@ -242,14 +234,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
          "needs --executor-goal-skip")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
-    need(cfg.teacher_subgoal_steps >= 0, "teacher_subgoal_steps", "must be >= 0")
-    need(cfg.teacher in ("map", "map-los", "oracle"), "teacher", "must be 'map', 'map-los' or 'oracle'")
-    need(cfg.planner_imitation_steps >= 0, "planner_imitation_steps", "must be >= 0")
-    need(not (cfg.planner_imitation_steps and cfg.planner != "learn"), "planner_imitation_steps",
-         "trains the planner: needs --planner learn")
-    need(cfg.imitation_minibatches >= 1, "imitation_minibatches", "must be >= 1")
-    need(not (cfg.teacher_subgoal_steps and cfg.executor != "learn"), "teacher_subgoal_steps",
-         "trains the executor: needs --executor learn")
     need(cfg.planner_entropy_coef is None or cfg.planner_entropy_coef >= 0, "planner_entropy_coef", "must be >= 0")
     need(0.5 < cfg.random_subgoal_distance <= cfg.env.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")

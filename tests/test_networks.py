@@ -254,32 +254,6 @@ def test_planner_offsets_shrink_near_the_goal():
     torch.testing.assert_close(mean, expect)
 
 
-def test_planner_imitation_loss_matches_wrapped_angles_and_is_learnt():
-    """The imitation NLL treats theta and theta + 2 pi alike, and minimising it moves the
-    planner's greedy decision onto the teacher's."""
-    torch.manual_seed(0)
-    net = Planner(rho_max=4.0)
-    obs = net.example_obs(64, torch.Generator().manual_seed(1))
-    stop = (obs["goal"][:, 0] < 1.0).long()
-    sub = torch.stack([torch.full((64,), 2.0), torch.full((64,), 0.5)], 1)  # 2 m, 0.5 rad left of ahead
-    a = net.imitation_loss(obs, stop, sub)
-    b = net.imitation_loss(obs, stop, sub + torch.tensor([0.0, 2 * math.pi]))
-    assert torch.allclose(a, b, atol=1e-4)
-    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
-    first = a.mean().item()
-    for _ in range(300):
-        opt.zero_grad()
-        loss = net.imitation_loss(obs, stop, sub).mean()
-        loss.backward()
-        opt.step()
-    assert loss.item() < first - 1.0
-    out = net.act(obs, deterministic=True)
-    assert (out["stop"] == stop).float().mean() > 0.95
-    keep = stop == 0
-    err = (out["subgoal_env"][keep] - sub[keep]).abs()
-    assert err[:, 0].max() < 0.2 and torch.atan2(torch.sin(err[:, 1]), torch.cos(err[:, 1])).abs().max() < 0.2
-
-
 def test_executor_stop_prior_stops_near_the_subgoal():
     """With a stop prior, an untrained executor's p(STOP) is 0.5 at the prior's distance
     from its sub-goal, high nearer and negligible farther; without one it is ~0.25 anywhere."""

@@ -103,22 +103,6 @@ class MapPlannerPolicy:
         return {"stop": stop, "subgoal": sub}
 
 
-class ImitatingPlanner:
-    """A learned planner that acts while a teacher's decision in the same state is
-    returned beside it (``teacher_stop``, ``teacher_subgoal``), for an imitation loss."""
-
-    learns, name = True, "imitating"
-
-    def __init__(self, learned: LearnedPlanner, teacher):
-        self.learned, self.teacher = learned, teacher
-        self.ground_truth = teacher.ground_truth
-
-    def decide(self, obs: dict, rows: np.ndarray) -> dict:
-        teach = self.teacher.decide(obs, rows)  # before the decision is applied: the same state
-        out = self.learned.decide(obs, rows)
-        return out | {"teacher_stop": teach["stop"], "teacher_subgoal": teach["subgoal"]}
-
-
 # --------------------------------------------------------------------------- executors
 
 
@@ -267,16 +251,13 @@ class PlexDriver:
 PLANNER_KINDS = ("learned", "oracle", "random", "map", "map-los")
 
 
-def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None,
-                 teacher: str = "oracle", **random_kw):
-    """A planner policy by name: 'learned' (needs ``net``), 'imitating' (the learned one
-    with the ``teacher`` planner's decisions beside its own), 'random', 'oracle', 'map' or 'map-los'
+def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None, **random_kw):
+    """A planner policy by name: 'learned' (needs ``net``), 'random', 'oracle', 'map' or 'map-los'
     (the map planner with sub-goals in a straight line over seen floor)."""
-    if kind in ("learn", "learned", "imitating"):
+    if kind in ("learn", "learned"):
         if net is None:
             raise ValueError("a learned planner needs a network (a checkpoint)")
-        learned = LearnedPlanner(net, deterministic)
-        return ImitatingPlanner(learned, make_planner(teacher, env)) if kind == "imitating" else learned
+        return LearnedPlanner(net, deterministic)
     if kind == "random":
         return RandomPlanner(rng=rng, **({"max_distance": env.config.rho_max} | random_kw))
     if kind == "oracle":

@@ -15,19 +15,16 @@ PLEX runs through the rollout driver (:mod:`.driver`), per iteration:
    until its next decision (gamma_PL per decision). Once N_PL decisions per world have
    completed, a PPO update of the planner.
 
-The planner's learning of an iteration (its update and imitation steps) runs on a second
-thread beside the executor's update (``parallel_updates``, single-process runs): the two
+The planner's update of an iteration runs on a second thread beside the executor's update (``parallel_updates``, single-process runs): the two
 agents share no parameters, each draws its minibatches from its own generator, and both
 threads run the same number of torch threads, so the networks are the same, bit for bit,
 as with the updates one after the other.
 
 Either agent can be a stand-in that is not trained (``--planner random|oracle``,
-``--executor oracle``: the shortest-path oracles use ground truth). A run can begin with
-phases (:func:`phase_at`): the warm-up (the executor learns under random sub-goals
-on ``warmup_scenes``), the teacher's sub-goals (the executor learns under the ``teacher``
-planner: ``map`` or ``map-los``, shortest paths on the agent's own ego map, or the ground-truth
-``oracle``) and the planner's imitation (the planner also learns to imitate the teacher's
-decisions in the states it visits, DAgger-style).
+``--executor oracle``: the shortest-path oracles use ground truth). A run has two phases
+(:func:`phase_at`): the warm-up (``planner_warmup_steps``: the executor learns under random
+sub-goals, on ``warmup_scenes`` if set), then the main phase (the agents as ``--planner`` and
+``--executor`` say).
 
 Stop-gradient: the ELI reaches the planner through the environment as a plain array, and
 the planner detaches it again inside its forward pass; the planner's optimiser holds only
@@ -56,84 +53,34 @@ from .base import EpisodeStats, Trainer, env_kwargs
 from .driver import Decision, PlexDriver, make_executor, make_planner
 from .ppo import RolloutBuffer, ppo_update
 
-PHASES = ("warmup", "teacher-subgoals", "planner-imitation", "main")
+# The number logged as the metric "phase"; 1 and 2 were the retired teacher's phases, left
+# unused so that the logs of older runs read the same.
+PHASES = {"warmup": 0, "main": 3}
 
 
 @dataclass(frozen=True)
 class Phase:
-    """A stretch of a PLEX run: which planner acts and which agents learn."""
+    """A stretch of a PLEX run: which planner acts, and in which worlds."""
 
-    name: str  # one of PHASES (its index is logged as the metric "phase")
-    planner: str  # the planner policy acting: learn, imitating, random or oracle
-    learn_planner: bool
-    learn_executor: bool
+    name: str  # a key of PHASES
+    planner: str  # the planner policy acting: learn, random or oracle
     warm_env: bool  # on --warmup-scenes with --warmup-max-steps
 
 
 def phase_at(cfg: TrainConfig, step: int) -> Phase:
-    """The phase of a PLEX run at an environment step. In order, each for its number of
-    steps: the warm-up (``planner_warmup_steps``: the warm-up planner, the executor learns),
-    the teacher's sub-goals (``teacher_subgoal_steps``: the ``teacher`` planner, the
-    executor learns), the planner's imitation (``planner_imitation_steps``: the planner acts
-    and learns by PPO and by imitating the teacher, beside the executor), then the main
-    phase (the agents as ``--planner`` / ``--executor`` say)."""
-    learn_ex = cfg.executor == "learn"
-    ends = np.cumsum([cfg.planner_warmup_steps, cfg.teacher_subgoal_steps, cfg.planner_imitation_steps])
-    if step < ends[0]:
-        return Phase("warmup", "random", False, learn_ex, bool(cfg.warmup_scenes))
-    if step < ends[1]:
-        return Phase("teacher-subgoals", cfg.teacher, False, True, False)
-    if step < ends[2]:
-        return Phase("planner-imitation", "imitating", True, learn_ex, False)
-    return Phase("main", cfg.planner, cfg.planner == "learn", learn_ex, False)
-
-
-IMITATION_CAPACITY = 20_000  # planner decisions kept for imitation (DAgger's aggregate, newest kept)
-IMITATION_BATCH = 128
-
-
-class ImitationSet:
-    """Planner observations with the teacher planner's decisions in them, in a ring of
-    ``capacity``; the ego map and the ELI are kept in float16 (the ego map's values are
-    multiples of 1/4, exact in float16)."""
-
-    def __init__(self, capacity: int):
-        self.capacity, self.size, self.next = capacity, 0, 0
-        self.data: dict[str, torch.Tensor] = {}
-
-    def __len__(self) -> int:
-        return self.size
-
-    def add(self, obs: dict, stop, subgoal) -> None:
-        items = {**{f"obs/{k}": torch.as_tensor(v) for k, v in obs.items()},
-                 "stop": torch.as_tensor(stop, dtype=torch.long), "subgoal": torch.as_tensor(subgoal, dtype=torch.float32)}
-        if not self.data:
-            for k, v in items.items():
-                dtype = torch.float16 if k in ("obs/ego_map", "obs/eli") else v.dtype
-                # empty, not zeros: only the first ``size`` rows are ever read, and zeroing
-                # the whole ring up front cost about 0.8 s of page faults on a 2-core machine
-                self.data[k] = torch.empty((self.capacity,) + v.shape[1:], dtype=dtype)
-        k = len(items["stop"])
-        at = (self.next + torch.arange(k)) % self.capacity
-        for key, v in items.items():
-            self.data[key][at] = v.to(self.data[key].dtype)
-        self.next = int((self.next + k) % self.capacity)
-        self.size = min(self.size + k, self.capacity)
-
-    def sample(self, n: int, generator: torch.Generator) -> tuple[dict, torch.Tensor, torch.Tensor]:
-        """(planner obs, teacher stop, teacher sub-goal) of ``n`` decisions drawn uniformly
-        (with replacement)."""
-        idx = torch.randint(self.size, (n,), generator=generator)
-        obs = {k[4:]: v[idx].float() if v.dtype == torch.float16 else v[idx]
-               for k, v in self.data.items() if k.startswith("obs/")}
-        return obs, self.data["stop"][idx], self.data["subgoal"][idx]
+    """The phase of a PLEX run at an environment step: the warm-up for ``planner_warmup_steps``
+    (random sub-goals stand in for the planner, the executor learns), then the main phase
+    (the agents as ``--planner`` / ``--executor`` say)."""
+    if step < cfg.planner_warmup_steps:
+        return Phase("warmup", "random", bool(cfg.warmup_scenes))
+    return Phase("main", cfg.planner, False)
 
 
 class PlexTrainer(Trainer):
     """Independent PPO for the planner and the executor (see the module docstring)."""
 
     def __init__(self, cfg: TrainConfig, log: bool = True, record: Callable[[Trainer], object] | None = None):
-        self.planner_gen: torch.Generator | None = None  # the planner's minibatches and imitation samples
+        self.planner_gen: torch.Generator | None = None  # the planner's minibatches
         super().__init__(cfg, log, record)
         if self.planner_gen is None or not self.dist.is_main:
             # a fresh run, or a worker besides rank 0 (whose sampler sync_start seeded apart):
@@ -146,7 +93,6 @@ class PlexTrainer(Trainer):
         self.executor: Executor = self.nets["executor"]
         self.np_rng = np.random.default_rng(cfg.seed + self.dist.seed_offset)
         self.executor_success: deque = deque(maxlen=200)  # reached / turns, over recent turns
-        self.imitation = ImitationSet(IMITATION_CAPACITY)  # not checkpointed: a resumed run starts it afresh
         self._make_driver()
 
     def _phase(self) -> Phase:
@@ -178,7 +124,7 @@ class PlexTrainer(Trainer):
                                  **kw)
         self.driver = PlexDriver(
             self.env,
-            make_planner(self.phase.planner, self.env, self.planner, rng=self.np_rng, teacher=cfg.teacher,
+            make_planner(self.phase.planner, self.env, self.planner, rng=self.np_rng,
                          max_distance=cfg.random_subgoal_distance, max_angle=cfg.random_subgoal_angle),
             make_executor(cfg.executor, self.env, self.executor))
         self.driver.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
@@ -225,8 +171,6 @@ class PlexTrainer(Trainer):
         self.pending_data["stop"][idx] = torch.as_tensor(out["stop"])
         self.pending_data["subgoal"][idx] = out["raw"]
         self.pending_data["log_prob"][idx] = out["log_prob"]
-        if "teacher_stop" in out:
-            self.imitation.add(d.obs, out["teacher_stop"], out["teacher_subgoal"])
         self.pending_value[rows] = out["value"].numpy()
         self.pending_reward[rows] = 0.0
         self.pending[rows] = True
@@ -281,33 +225,16 @@ class PlexTrainer(Trainer):
         self.updates["planner"] += 1
         return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": m}
 
-    def _learn_planner_step(self, update: bool, imitate: bool, threads: int) -> tuple[dict, float]:
-        """The planner's learning after an executor rollout: its PPO update (once N_PL
-        decisions per world have closed), then its imitation steps (in that phase), on
-        ``threads`` torch threads (the main thread's count: CPU reductions split their work
-        by it, so both paths give the same bits). Returns its metrics and seconds."""
+    def _learn_planner_step(self, update: bool, threads: int) -> tuple[dict, float]:
+        """The planner's PPO update after an executor rollout (once N_PL decisions per world
+        have closed), on ``threads`` torch threads (the main thread's count: CPU reductions
+        split their work by it, so both paths give the same bits). Returns its metrics and
+        seconds."""
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
         t0 = time.perf_counter()
         metrics = self._update_planner() if update else {}
-        metrics |= self._imitate() if imitate else {}
         return metrics, time.perf_counter() - t0
-
-    def _imitate(self) -> dict:
-        """Imitation steps of the planner (after every executor rollout of the phase) on
-        minibatches of the aggregate (DAgger): the negative log-likelihood of the teacher's
-        decisions, on the planner's optimiser."""
-        nll = []
-        for _ in range(self.cfg.imitation_minibatches):
-            obs, stop, subgoal = self.imitation.sample(IMITATION_BATCH, self.planner_gen)
-            loss = self.planner.imitation_loss(obs, stop.to(self.device), subgoal.to(self.device)).mean()
-            self.opts["planner"].zero_grad()
-            loss.backward()
-            distributed.average_gradients(self.planner)
-            torch.nn.utils.clip_grad_norm_(self.planner.parameters(), self.cfg.max_grad_norm)
-            self.opts["planner"].step()
-            nll.append(loss.item())
-        return {"learner/planner_imitation_nll": float(np.mean(nll)), "learner/planner_imitation_set": len(self.imitation)}
 
     # ---------------------------------------------------------------- executor
     def _values(self, obs: dict, state: torch.Tensor) -> np.ndarray:
@@ -344,8 +271,8 @@ class PlexTrainer(Trainer):
                 self.stats = EpisodeStats()
                 self._make_driver()
             drv = self.driver
-            learn_ex = drv.executor.learns and self.phase.learn_executor
-            learn_pl = self._learn_planner = drv.planner.learns and self.phase.learn_planner
+            learn_ex = drv.executor.learns
+            learn_pl = self._learn_planner = drv.planner.learns
             buf = RolloutBuffer(T, n, self.device)
             if learn_ex:
                 buf.initial_state = drv.state.clone()
@@ -375,12 +302,10 @@ class PlexTrainer(Trainer):
                 clock.timing["inference"] += time.perf_counter() - t0 - sim
                 clock.timing["sim"] += sim
             t4 = time.perf_counter()
-            metrics = {"phase": PHASES.index(self.phase.name)}
-            # the planner's learning of this iteration: on the second thread, if there is one,
-            # from here on (the all_true checks are collectives, so they stay on this thread)
-            update_pl = learn_pl and self._planner_ready()
-            imitate = self.phase.name == "planner-imitation" and distributed.all_true(len(self.imitation) > 0)
-            args = (update_pl, imitate, torch.get_num_threads())
+            metrics = {"phase": PHASES[self.phase.name]}
+            # the planner's update of this iteration: on the second thread, if there is one,
+            # from here on (the all_true check is a collective, so it stays on this thread)
+            args = (learn_pl and self._planner_ready(), torch.get_num_threads())
             job = self.pool.submit(self._learn_planner_step, *args) if self.pool is not None else None
             t5 = time.perf_counter()
             if learn_ex:

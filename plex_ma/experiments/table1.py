@@ -47,13 +47,14 @@ from pathlib import Path
 import numpy as np
 
 from plex_ma.trainers.base import EpisodeStats
-from plex_ma.trainers.plex import PHASES
 
 from . import repo_root
 from .common import machine, mean_sd_se, provenance, pyplot, save_figure, write_json
 
-# The PLEX phases from which the learned planner sets the sub-goals (logged as "phase").
-LEARNED_PLANNER_PHASE = PHASES.index("planner-imitation")
+# The logged "phase" from which on the learned planner sets the sub-goals: the main phase
+# (trainers.plex.PHASES) and, in the logs of older runs, already phase 2 (the retired
+# imitation of a teacher planner).
+LEARNED_PLANNER_PHASE = 2
 
 
 @dataclass(frozen=True)
@@ -149,8 +150,8 @@ def _load_eval(path: Path) -> dict | None:
 def _load_curve(path: Path) -> dict | None:
     """A run's training curve: reward and success of its last 100 training episodes (sampled
     actions) at each logged step, NaN until 100 have ended. For PLEX, only the phases in
-    which the learned planner acts count (before them a random or teacher planner sets the
-    sub-goals), and the window starts empty when they begin."""
+    which the learned planner acts count (before them random sub-goals, or in older runs a
+    teacher planner's), and the window starts empty when they begin."""
     if not path.is_file():
         return None
     with gzip.open(path, "rt") as f:

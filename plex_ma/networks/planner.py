@@ -213,18 +213,6 @@ class Planner(MapEncoder):
         log_prob, entropy = self._log_prob_entropy(stop_d, sub_d, stop.long(), subgoal)
         return log_prob, entropy, value
 
-    def imitation_loss(self, obs: dict, stop: torch.Tensor, subgoal: torch.Tensor) -> torch.Tensor:
-        """(B,) negative log-likelihood of a teacher's decisions: its stop (B,) and, where
-        it continues, its sub-goal (B, 2) in the env's (rho, theta). Each theta is matched
-        with the one of its 2 pi copies nearest the predicted mean, as raw samples are
-        unbounded and only their wrapped copy reaches the env."""
-        stop_d, sub_d, _ = self(obs)
-        mean = sub_d.mean
-        theta = subgoal[:, 1] + 2 * math.pi * torch.round((mean[:, 1].detach() - subgoal[:, 1]) / (2 * math.pi))
-        target = torch.stack([subgoal[:, 0], theta], dim=1)
-        log_prob, _ = self._log_prob_entropy(stop_d, sub_d, stop.long(), target)
-        return -log_prob
-
     def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
         c, s = self.convs[0].in_channels, 32
         return {"ego_map": torch.rand(batch, c, s, s, generator=generator),
