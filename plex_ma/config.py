@@ -81,21 +81,15 @@ class TrainConfig:
     ppo_epochs: int = 4
     """PPO epochs per update"""
     num_minibatches: int = 2
-    """minibatches per epoch (recurrent minibatches split over worlds)"""
+    """minibatches per PPO epoch (the executor's and flat agent's split the worlds, the planner's its decisions)"""
     clip: float = 0.2
     """PPO clip range"""
     entropy_coef: float = 0.01
-    """entropy bonus weight"""
-    planner_entropy_coef: float | None = None
-    """PLEX only: the planner's entropy bonus (None: --entropy-coef); 0 is CleanRL's choice for Gaussian actions"""
+    """entropy bonus weight (both agents)"""
     value_coef: float = 0.5
     """value loss weight"""
     max_grad_norm: float = 0.5
     """gradient clipping norm"""
-    planner_target_kl: float | None = None
-    """PLEX only: stop the epochs of a planner update early once its approx_kl exceeds this (CleanRL's target_kl; None: all epochs)"""
-    planner_minibatches: int = 2
-    """PLEX only: minibatches per epoch of the planner's PPO update"""
     executor_goal_skip: bool = True
     """the executor's (and flat policy's) heads also read the encoded goal vector beside the memory's output (--no-executor-goal-skip: heads on the 128-d output alone)"""
     executor_stop_prior: float | None = None
@@ -224,8 +218,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.executor in ("learn", "oracle"), "executor", "must be 'learn' or 'oracle'")
     need(not (cfg.planner != "learn" and cfg.executor == "oracle"), "executor",
          "with --executor oracle the planner must learn (nothing would be trained)")
-    need(cfg.planner_minibatches >= 1, "planner_minibatches", "must be >= 1")
-    need(cfg.planner_target_kl is None or cfg.planner_target_kl > 0, "planner_target_kl", "must be positive")
     need(cfg.executor_stop_prior is None or 0 < cfg.executor_stop_prior <= 2, "executor_stop_prior",
          "must be in (0, 2] metres")
     need(cfg.executor_heading_prior is None or 0 < cfg.executor_heading_prior <= 20, "executor_heading_prior",
@@ -234,7 +226,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
          "needs --executor-goal-skip")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
-    need(cfg.planner_entropy_coef is None or cfg.planner_entropy_coef >= 0, "planner_entropy_coef", "must be >= 0")
     need(0.5 < cfg.random_subgoal_distance <= cfg.env.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")
     need(cfg.device in ("auto", "cpu", "cuda") or cfg.device.startswith("cuda:"), "device",

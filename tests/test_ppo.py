@@ -116,7 +116,7 @@ def test_ppo_update_reduces_loss_planner():
 
 def test_target_kl_stops_the_epochs_early():
     """With a target KL the update stops after the first epoch whose approx_kl exceeds it
-    (the planner's --planner-target-kl); without one it runs every epoch."""
+    (CleanRL's target_kl); without one it runs every epoch."""
     steps = {}
     for target in (None, 1e-9):
         torch.manual_seed(0)  # the same planner and rollout in both arms

@@ -284,11 +284,11 @@ def test_cli_help_and_bad_config(capsys):
     from plex_ma.train import main as train_main
 
     with pytest.raises(SystemExit) as e:  # the CLI: exit status 2 and one line naming the flag
-        train_main(["--preset", "smoke", "--planner-entropy-coef", "-1"])
-    assert e.value.code == 2 and "--planner-entropy-coef" in capsys.readouterr().err
-    with pytest.raises(ValueError, match="--planner-target-kl"):
-        parse(["--preset", "smoke", "--planner-target-kl", "0"])
-    assert parse(["--preset", "smoke", "--planner-target-kl", "0.03"]).planner_target_kl == 0.03
+        train_main(["--preset", "smoke", "--clip", "0"])
+    assert e.value.code == 2 and "--clip" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="--planner-lr"):
+        parse(["--preset", "smoke", "--planner-lr", "0"])
+    assert parse(["--preset", "smoke", "--planner-lr", "1e-4"]).planner_lr == 1e-4
 
 
 def test_cpu_preset_plex_settings_apply_to_plex_only():
@@ -343,7 +343,8 @@ def test_saved_config_with_retired_settings_loads():
                "imitation_minibatches": 8, "planner_entropy_coef": None, "planner_target_kl": None,
                "planner_minibatches": 2}
     assert from_dict(dataclasses.asdict(cfg) | retired) == cfg
-    for flag in ("--teacher-subgoal-steps", "--planner-imitation-steps"):
+    for flag in ("--teacher-subgoal-steps", "--planner-imitation-steps", "--planner-minibatches",
+                 "--planner-entropy-coef", "--planner-target-kl"):
         with pytest.raises(SystemExit):
             parse(["--preset", "smoke", flag, "100"])
 

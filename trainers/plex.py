@@ -33,7 +33,6 @@ the planner's parameters, so the planner's update cannot change the executor.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections import deque
 from collections.abc import Callable
@@ -218,10 +217,7 @@ class PlexTrainer(Trainer):
                 dones=torch.zeros(m, dtype=torch.bool))
         buf.data["advantages"] = torch.as_tensor(adv, device=self.device)[None]
         buf.data["returns"] = torch.as_tensor(adv + value, device=self.device)[None]
-        ent = self.ppo.ent_coef if self.cfg.planner_entropy_coef is None else self.cfg.planner_entropy_coef
-        ppo = dataclasses.replace(self.ppo, num_minibatches=self.cfg.planner_minibatches,
-                                  target_kl=self.cfg.planner_target_kl, ent_coef=ent)
-        stats = ppo_update(self.planner, buf, self.opts["planner"], ppo, self.planner_gen)
+        stats = ppo_update(self.planner, buf, self.opts["planner"], self.ppo, self.planner_gen)
         self.updates["planner"] += 1
         return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": m}
 
