@@ -12,13 +12,13 @@ PLEX runs through the rollout driver (:mod:`.driver`), per iteration:
    N_EX-th action (a truncation: bootstrap from V of the observation after it, with the
    memory it had) or at the episode's end.
 4. Each planner decision is one transition whose reward is everything the planner earned
-   until its next decision (gamma_PL per decision). Once N_PL decisions per world have
-   completed, a PPO update of the planner.
+   until its next decision (gamma_PL per decision; :class:`~.decisions.DecisionBuffer`).
+   Once N_PL decisions per world have completed, a PPO update of the planner.
 
-The planner's update of an iteration runs on a second thread beside the executor's update (``parallel_updates``, single-process runs): the two
-agents share no parameters, each draws its minibatches from its own generator, and both
-threads run the same number of torch threads, so the networks are the same, bit for bit,
-as with the updates one after the other.
+The planner's update of an iteration runs on a second thread beside the executor's update
+(``parallel_updates``, single-process runs): the two agents share no parameters, each draws
+its minibatches from its own generator, and both threads run the same number of torch
+threads, so the networks are the same, bit for bit, as with the updates one after the other.
 
 Either agent can be a stand-in that is not trained (``--planner random|oracle``,
 ``--executor oracle``: the shortest-path oracles use ground truth). A run has two phases
@@ -49,6 +49,7 @@ from plex_ma.networks import Executor, Planner
 
 from . import distributed
 from .base import EpisodeStats, Trainer, env_kwargs
+from .decisions import DecisionBuffer
 from .driver import Decision, PlexDriver, make_executor, make_planner
 from .ppo import RolloutBuffer, ppo_update
 
@@ -128,56 +129,21 @@ class PlexTrainer(Trainer):
             make_executor(cfg.executor, self.env, self.executor))
         self.driver.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
         self._set_threads()
-        n = cfg.num_envs
-        self.turn_d0 = np.zeros(n)
-        # The planner's pending transition per world (its decision waits for its reward and
-        # its successor) and the closed transitions of this planner rollout, in order.
-        self.pending = np.zeros(n, np.bool_)
-        self.pending_reward = np.zeros(n)
-        self.pending_value = np.zeros(n, np.float32)
-        self.pending_data: dict | None = None
-        self.closed: list[dict] = []
-        self.n_closed = 0
+        self.turn_d0 = np.zeros(cfg.num_envs)
+        self.decisions = DecisionBuffer(cfg.num_envs)  # the planner's transitions
 
-    # ---------------------------------------------------------------- planner transitions
-    def _close(self, rows: np.ndarray, done: bool) -> None:
-        rows = rows[self.pending[rows]]
-        if not len(rows):
-            return
-        self.closed.append({"world": rows.copy(), "reward": self.pending_reward[rows].astype(np.float32),
-                            "done": np.full(len(rows), done), "value": self.pending_value[rows].copy(),
-                            **{k: v[rows].clone() for k, v in self.pending_data.items()}})
-        self.n_closed += len(rows)
-        self.pending[rows] = False
-
+    # ---------------------------------------------------------------- planner
     def _on_decision(self, d: Decision) -> None:
         """Book-keeping of one round of planner decisions: episodes ended by a planner stop,
         and (when the planner learns) its transitions."""
         self._count_episodes(d.result)
-        if not self._learn_planner:
-            return
-        rows, out = d.rows, d.out
-        self._close(rows, done=False)  # the previous decision's transition is complete
-        if self.pending_data is None:
-            n = self.cfg.num_envs
-            self.pending_data = {f"obs/{k}": torch.zeros((n,) + v.shape[1:], dtype=torch.as_tensor(v).dtype)
-                                 for k, v in d.obs.items()}
-            self.pending_data |= {"stop": torch.zeros(n, dtype=torch.long), "subgoal": torch.zeros(n, 2),
-                                  "log_prob": torch.zeros(n)}
-        idx = torch.as_tensor(rows)
-        for k, v in d.obs.items():
-            self.pending_data[f"obs/{k}"][idx] = torch.as_tensor(v)
-        self.pending_data["stop"][idx] = torch.as_tensor(out["stop"])
-        self.pending_data["subgoal"][idx] = out["raw"]
-        self.pending_data["log_prob"][idx] = out["log_prob"]
-        self.pending_value[rows] = out["value"].numpy()
-        self.pending_reward[rows] = 0.0
-        self.pending[rows] = True
-        self._planner_rewards(d.result)
+        if self._learn_planner:
+            out = d.out
+            self.decisions.decide(d.rows, d.obs, out["stop"], out["raw"], out["log_prob"], out["value"])
+            self._planner_rewards(d.result)
 
     def _planner_rewards(self, res) -> None:
-        self.pending_reward[self.pending] += res.rewards[self.pending, PLANNER]
-        self._close(np.flatnonzero(res.terminated | res.truncated), done=True)
+        self.decisions.rewards(res.rewards[:, PLANNER], res.terminated | res.truncated)
 
     def _count_episodes(self, res) -> None:
         for info, ret in zip(res.episode_infos, self.driver.episode_returns):
@@ -185,41 +151,14 @@ class PlexTrainer(Trainer):
 
     def _planner_ready(self) -> bool:
         # distributed: all workers update the planner together, once every one of them is ready
-        return distributed.all_true(self.n_closed >= self.cfg.n_pl * self.cfg.num_envs)
+        return distributed.all_true(len(self.decisions) >= self.cfg.n_pl * self.cfg.num_envs)
 
     def _update_planner(self) -> dict:
-        """GAE along each world's chain of decisions, then PPO on the flattened batch."""
-        cat = {k: (torch.cat if isinstance(v, torch.Tensor) else np.concatenate)([c[k] for c in self.closed])
-               for k, v in self.closed[0].items()}
-        self.closed, self.n_closed = [], 0
-        order = np.argsort(cat["world"], kind="stable")  # each world's chain, in decision order
-        world, reward, done, value = (cat[k][order] for k in ("world", "reward", "done", "value"))
-        m = len(world)
-        # the next transition's value within a world's chain; the chain's last one
-        # bootstraps from the value of the world's pending decision
-        last = np.r_[world[1:] != world[:-1], True]
-        nxt = np.r_[value[1:], 0.0].astype(np.float32)
-        boot = np.where(self.pending[world], self.pending_value[world], 0.0)
-        nxt = np.where(last, boot, nxt)
-        nxt = np.where(done, 0.0, nxt)
-        g, lam = self.cfg.gamma_pl, self.cfg.gae_lambda
-        delta = reward + g * nxt - value
-        adv = np.zeros(m, np.float32)
-        a = 0.0
-        for t in range(m - 1, -1, -1):
-            a = delta[t] + (0.0 if (last[t] or done[t]) else g * lam * a)
-            adv[t] = a
-        idx = torch.as_tensor(order)
-        buf = RolloutBuffer(1, m, self.device)
-        buf.add(0, obs={k[4:]: v[idx] for k, v in cat.items() if k.startswith("obs/")},
-                actions={"stop": cat["stop"][idx], "subgoal": cat["subgoal"][idx]},
-                log_probs=cat["log_prob"][idx], values=torch.as_tensor(value), rewards=torch.zeros(m),
-                dones=torch.zeros(m, dtype=torch.bool))
-        buf.data["advantages"] = torch.as_tensor(adv, device=self.device)[None]
-        buf.data["returns"] = torch.as_tensor(adv + value, device=self.device)[None]
-        stats = ppo_update(self.planner, buf, self.opts["planner"], self.ppo, self.planner_gen)
+        """PPO on the planner's closed decisions (GAE along each world's chain)."""
+        batch = self.decisions.batch(self.cfg.gamma_pl, self.cfg.gae_lambda, self.device)
+        stats = ppo_update(self.planner, batch, self.opts["planner"], self.ppo, self.planner_gen)
         self.updates["planner"] += 1
-        return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": m}
+        return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": len(batch.values)}
 
     def _learn_planner_step(self, update: bool, threads: int) -> tuple[dict, float]:
         """The planner's PPO update after an executor rollout (once N_PL decisions per world

@@ -4,8 +4,10 @@
 - ``RolloutBuffer``: (T, B) storage of one rollout. Recurrent policies (executor, flat)
   set ``initial_state`` and get minibatches of whole env columns, so every sequence keeps
   its order, its ``starts`` and the memory it began with (as CleanRL's ppo_atari_lstm and
-  habitat-lab do). Non-recurrent policies (the planner: one transition per decision) get
-  minibatches of shuffled single transitions.
+  habitat-lab do). Non-recurrent policies get minibatches of shuffled single transitions.
+- ``Transitions``: a batch of single transitions whose returns are computed, for a
+  non-recurrent policy whose transitions do not come in (T, B) rollouts (the planner: one
+  transition per decision, see ``decisions.py``).
 - ``ppo_loss`` / ``ppo_update``: clipped surrogate, (optionally clipped) value loss,
   entropy bonus, advantage normalisation per minibatch, gradient-norm clipping.
 
@@ -103,6 +105,26 @@ def _map(fn, x: Tensors) -> Tensors:
     return {k: fn(v) for k, v in x.items()} if isinstance(x, dict) else fn(x)
 
 
+@dataclass
+class Transitions:
+    """``n`` single transitions, each tensor (n, ...), with their advantages and returns."""
+
+    obs: dict[str, torch.Tensor]
+    actions: Tensors
+    log_probs: torch.Tensor
+    values: torch.Tensor
+    advantages: torch.Tensor
+    returns: torch.Tensor
+
+    def minibatches(self, num_minibatches: int, generator: torch.Generator | None = None) -> Iterator[Minibatch]:
+        """Shuffled minibatches covering the transitions once."""
+        perm = torch.randperm(len(self.values), generator=generator).to(self.values.device)
+        for idx in perm.chunk(num_minibatches):
+            pick = lambda x: x[idx]  # noqa: E731
+            yield Minibatch(obs=_map(pick, self.obs), actions=_map(pick, self.actions), log_probs=pick(self.log_probs),
+                            values=pick(self.values), advantages=pick(self.advantages), returns=pick(self.returns))
+
+
 class RolloutBuffer:
     """One rollout of ``num_steps`` x ``num_envs`` transitions, allocated on first ``add``.
 
@@ -117,9 +139,7 @@ class RolloutBuffer:
                     bootstrap_values=v_final)     # v_final: V(final obs) where tr, else anything
         buf.compute_returns(gamma, lam, last_values=V(o_T))
 
-    A non-recurrent policy leaves ``initial_state`` None and ``starts`` out. ``env_ids`` writes
-    row t for a subset of envs only, for agents whose envs do not act in lockstep (the
-    planner); every (t, env) cell must be written before ``compute_returns``.
+    A non-recurrent policy leaves ``initial_state`` None and ``starts`` out.
     """
 
     def __init__(self, num_steps: int, num_envs: int, device: str | torch.device = "cpu"):
@@ -139,33 +159,37 @@ class RolloutBuffer:
     def recurrent(self) -> bool:
         return self.initial_state is not None
 
+    @property
+    def values(self) -> torch.Tensor:
+        return self.data["values"]
+
+    @property
+    def returns(self) -> torch.Tensor:
+        return self.data["returns"]
+
     def _alloc(self, x: torch.Tensor) -> torch.Tensor:
         return torch.zeros(self.num_steps, self.num_envs, *x.shape[1:], dtype=x.dtype, device=self.device)
 
-    def _write(self, store: dict, key: str, t: int, x, env_ids, dtype=None) -> None:
+    def _write(self, store: dict, key: str, t: int, x, dtype=None) -> None:
         x = _t(x, dtype, self.device).detach()  # a stored tensor must never join a graph
         if key not in store:
             store[key] = self._alloc(x)
-        if env_ids is None:
-            store[key][t] = x
-        else:
-            store[key][t, _t(env_ids, torch.long, self.device)] = x
+        store[key][t] = x
 
     def add(self, t: int, *, obs: dict, actions: Tensors, log_probs, values, rewards, dones,
-            truncated=None, starts=None, bootstrap_values=None, env_ids=None) -> None:
+            truncated=None, starts=None, bootstrap_values=None) -> None:
         for k, v in obs.items():
-            self._write(self.obs, k, t, v, env_ids)
+            self._write(self.obs, k, t, v)
         self._dict_actions = isinstance(actions, dict)
         for k, v in (actions if self._dict_actions else {"action": actions}).items():
-            self._write(self._actions, k, t, v, env_ids)
-        n = len(rewards) if env_ids is None else len(env_ids)
-        zeros = torch.zeros(n)
+            self._write(self._actions, k, t, v)
+        zeros = torch.zeros(len(rewards))
         for key, x, dtype in [("log_probs", log_probs, torch.float32), ("values", values, torch.float32),
                               ("rewards", rewards, torch.float32), ("dones", dones, torch.bool),
                               ("truncated", zeros if truncated is None else truncated, torch.bool),
                               ("starts", zeros if starts is None else starts, torch.bool),
                               ("bootstrap_values", zeros if bootstrap_values is None else bootstrap_values, torch.float32)]:
-            self._write(self.data, key, t, x, env_ids, dtype)
+            self._write(self.data, key, t, x, dtype)
 
     def compute_returns(self, gamma: float, lam: float, last_values=None) -> None:
         """Fill ``advantages`` and ``returns``; ``last_values`` (B,) = V(o_T) for the envs whose
@@ -193,13 +217,11 @@ class RolloutBuffer:
                                 advantages=pick(d["advantages"]), returns=pick(d["returns"]),
                                 starts=pick(d["starts"]), initial_state=self.initial_state[idx])
         else:
-            n = self.num_steps * self.num_envs
-            perm = torch.randperm(n, generator=generator).to(self.device)
-            for idx in perm.chunk(num_minibatches):
-                pick = lambda x: x.reshape(n, *x.shape[2:])[idx]  # noqa: E731
-                yield Minibatch(obs=_map(pick, self.obs), actions=_map(pick, self.actions),
-                                log_probs=pick(d["log_probs"]), values=pick(d["values"]),
-                                advantages=pick(d["advantages"]), returns=pick(d["returns"]))
+            flat = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731
+            yield from Transitions(obs=_map(flat, self.obs), actions=_map(flat, self.actions),
+                                   log_probs=flat(d["log_probs"]), values=flat(d["values"]),
+                                   advantages=flat(d["advantages"]),
+                                   returns=flat(d["returns"])).minibatches(num_minibatches, generator)
 
 
 def evaluate(policy: nn.Module, mb: Minibatch):
@@ -244,9 +266,10 @@ def explained_variance(values: torch.Tensor, returns: torch.Tensor) -> float:
     return float("nan") if var == 0 else (1 - (returns - values).var() / var).item()
 
 
-def ppo_update(policy: nn.Module, batch: RolloutBuffer, optimizer: torch.optim.Optimizer, cfg: PPOConfig,
-               generator: torch.Generator | None = None, grad_hook=None) -> dict:
-    """``cfg.update_epochs`` epochs of minibatch PPO over a rollout whose returns are computed.
+def ppo_update(policy: nn.Module, batch: RolloutBuffer | Transitions, optimizer: torch.optim.Optimizer,
+               cfg: PPOConfig, generator: torch.Generator | None = None, grad_hook=None) -> dict:
+    """``cfg.update_epochs`` epochs of minibatch PPO over a rollout whose returns are computed
+    (or over ``Transitions``).
     Returns the mean over minibatch updates of policy_loss, value_loss, entropy, approx_kl,
     clip_fraction and grad_norm (before clipping), and the explained variance of the
     rollout's values.
@@ -278,5 +301,5 @@ def ppo_update(policy: nn.Module, batch: RolloutBuffer, optimizer: torch.optim.O
         if cfg.target_kl is not None and _dist.mean(kl) > cfg.target_kl:  # all workers stop together
             break
     out = {k: v / max(n, 1) for k, v in sums.items()}
-    out["explained_variance"] = explained_variance(batch.data["values"], batch.data["returns"])
+    out["explained_variance"] = explained_variance(batch.values, batch.returns)
     return out
