@@ -410,10 +410,12 @@ def test_warmup_on_other_scenes_then_training_scenes(tmp_path):
 def test_phases_warmup_then_main(tmp_path):
     """The phase schedule: the warm-up (random sub-goals, only the executor changes), then
     the main phase (both learn); the logged phase follows it."""
-    from plex_ma.trainers.plex import phase_at
+    from plex_ma.trainers.plex import Curriculum
 
     cfg = tiny(tmp_path, planner_warmup_steps=64, total_steps=192, n_pl=1)
-    assert [phase_at(cfg, s).name for s in (0, 63, 64, 10_000)] == ["warmup", "warmup", "main", "main"]
+    curriculum = Curriculum(cfg)
+    assert [curriculum.phase_at(s).name for s in (0, 63, 64, 10_000)] == ["warmup", "warmup", "main", "main"]
+    assert (curriculum.warmup.planner, curriculum.main.planner) == ("random", "learn")
     t = make_trainer(cfg)
     snaps = {}
 
@@ -424,7 +426,7 @@ def test_phases_warmup_then_main(tmp_path):
         return all(torch.equal(x, y) for x, y in zip(a, b))
 
     while t.step < cfg.total_steps:
-        before, name = snap(), t._phase().name
+        before, name = snap(), t.curriculum.phase_at(t.step).name
         t.cfg = replace(cfg, total_steps=t.step + 1)  # one executor rollout per call
         t.train()
         after = snap()

@@ -22,9 +22,9 @@ threads, so the networks are the same, bit for bit, as with the updates one afte
 
 Either agent can be a stand-in that is not trained (``--planner random|oracle``,
 ``--executor oracle``: the shortest-path oracles use ground truth). A run has two phases
-(:func:`phase_at`): the warm-up (``planner_warmup_steps``: the executor learns under random
-sub-goals, on ``warmup_scenes`` if set), then the main phase (the agents as ``--planner`` and
-``--executor`` say).
+(:class:`Curriculum`): the warm-up (``planner_warmup_steps``: the executor learns under
+random sub-goals, on ``warmup_scenes`` if set), then the main phase (the agents as
+``--planner`` and ``--executor`` say).
 
 Stop-gradient: the ELI reaches the planner through the environment as a plain array, and
 the planner detaches it again inside its forward pass; the planner's optimiser holds only
@@ -48,7 +48,7 @@ from plex_ma.envs.vector import PlexVectorEnv
 from plex_ma.networks import Executor, Planner
 
 from . import distributed
-from .base import EpisodeStats, Trainer, env_kwargs
+from .base import EpisodeStats, RunClock, Trainer, env_kwargs
 from .decisions import DecisionBuffer
 from .driver import Decision, PlexDriver, make_executor, make_planner
 from .ppo import RolloutBuffer, ppo_update
@@ -63,17 +63,23 @@ class Phase:
     """A stretch of a PLEX run: which planner acts, and in which worlds."""
 
     name: str  # a key of PHASES
-    planner: str  # the planner policy acting: learn, random or oracle
+    planner: str  # the planner policy acting (make_planner's kind): random, learn or oracle
     warm_env: bool  # on --warmup-scenes with --warmup-max-steps
 
 
-def phase_at(cfg: TrainConfig, step: int) -> Phase:
-    """The phase of a PLEX run at an environment step: the warm-up for ``planner_warmup_steps``
-    (random sub-goals stand in for the planner, the executor learns), then the main phase
-    (the agents as ``--planner`` / ``--executor`` say)."""
-    if step < cfg.planner_warmup_steps:
-        return Phase("warmup", "random", bool(cfg.warmup_scenes))
-    return Phase("main", cfg.planner, False)
+class Curriculum:
+    """The phases of a PLEX run: the warm-up for ``planner_warmup_steps`` environment steps
+    (random sub-goals stand in for the planner while the executor learns), then the main
+    phase (the agents as ``--planner`` / ``--executor`` say)."""
+
+    def __init__(self, cfg: TrainConfig):
+        self.warmup_steps = cfg.planner_warmup_steps
+        self.warmup = Phase("warmup", "random", bool(cfg.warmup_scenes))
+        self.main = Phase("main", cfg.planner, False)
+
+    def phase_at(self, step: int) -> Phase:
+        """The phase at an environment step (the total over all workers)."""
+        return self.warmup if step < self.warmup_steps else self.main
 
 
 class PlexTrainer(Trainer):
@@ -93,10 +99,8 @@ class PlexTrainer(Trainer):
         self.executor: Executor = self.nets["executor"]
         self.np_rng = np.random.default_rng(cfg.seed + self.dist.seed_offset)
         self.executor_success: deque = deque(maxlen=200)  # reached / turns, over recent turns
+        self.curriculum = Curriculum(cfg)
         self._make_driver()
-
-    def _phase(self) -> Phase:
-        return phase_at(self.cfg, self.step)
 
     def state(self) -> dict:
         return super().state() | {"planner_sampler_rng": self.planner_gen.get_state()}
@@ -116,7 +120,7 @@ class PlexTrainer(Trainer):
         """The training worlds (on ``--warmup-scenes`` in a warm-up that has them) and the
         driver with this phase's planner and executor policies."""
         cfg = self.cfg
-        self.phase = self._phase()
+        self.phase = self.curriculum.phase_at(self.step)
         kw = env_kwargs(cfg)
         if self.phase.warm_env:
             kw |= {"scenes": cfg.warmup_scenes, "num_scenes": None, "max_steps": cfg.warmup_max_steps}
@@ -194,74 +198,81 @@ class PlexTrainer(Trainer):
             boot[rows] = self._values({k: v[sel] for k, v in res.final_executor_obs.items()}, state[rows])
         return boot
 
+    def _rollout(self, clock: RunClock) -> RolloutBuffer | None:
+        """``rollout_steps`` executor steps in every world, with the planner's decisions
+        between them; the executor's rollout (None when it does not learn)."""
+        drv, n = self.driver, self.cfg.num_envs
+        buf = RolloutBuffer(self.cfg.rollout_steps, n, self.device) if drv.executor.learns else None
+        if buf is not None:
+            buf.initial_state = drv.state.clone()
+        for t in range(self.cfg.rollout_steps):
+            t0 = time.perf_counter()
+            env0 = drv.env_seconds
+            drv.decide(on_decision=self._on_decision)
+            # sub-goal distance at the start of each turn (for the executor's success rate)
+            self.turn_d0[drv.starts] = drv.executor_obs["subgoal"][drv.starts, 0]
+            s = drv.step()
+            res = s.result
+            if buf is not None:
+                trunc = res.executor_turn_end & ~res.executor_stopped
+                buf.add(t, obs=s.obs, actions=torch.as_tensor(s.out["action"]), log_probs=s.out["log_prob"],
+                        values=s.out["value"], rewards=torch.as_tensor(res.rewards[:, 1]),
+                        dones=torch.as_tensor(res.executor_stopped), truncated=torch.as_tensor(trunc),
+                        starts=torch.as_tensor(s.starts), bootstrap_values=torch.as_tensor(self._bootstrap(res, s.state, trunc)))
+            # Success over the turns whose sub-goal was not already within reach at the start.
+            counted = res.executor_turn_end & (self.turn_d0 >= self.env.config.subgoal_radius)
+            self.executor_success.extend(res.executor_reached[counted].tolist())
+            if self._learn_planner:
+                self._planner_rewards(res)
+            self._count_episodes(res)
+            self.step += n * self.dist.world_size  # total over all workers
+            # sim: time inside env.step; inference: the networks and the bookkeeping
+            sim = drv.env_seconds - env0
+            clock.timing["inference"] += time.perf_counter() - t0 - sim
+            clock.timing["sim"] += sim
+        return buf
+
+    def _update_executor(self, buf: RolloutBuffer) -> dict:
+        """The executor's PPO update on its rollout; V(o_T) bootstraps the worlds still inside
+        a turn (their memory continues)."""
+        drv = self.driver
+        rows = np.flatnonzero(drv.turn != PLANNER)
+        last = np.zeros(self.cfg.num_envs, np.float32)
+        if len(rows):
+            last[rows] = self._values({k: v[rows] for k, v in drv.executor_obs.items()}, drv.state[rows])
+        buf.compute_returns(self.cfg.gamma_ex, self.cfg.gae_lambda, last_values=torch.as_tensor(last))
+        stats = ppo_update(self.executor, buf, self.opts["executor"], self.ppo, self.gen)
+        return {f"learner/executor_{k}": v for k, v in stats.items()}
+
     def train(self) -> dict:
-        cfg = self.cfg
-        n, T = cfg.num_envs, cfg.rollout_steps
         clock = self._loop_start()
-        while self.step < cfg.total_steps:
-            if self.phase != self._phase():
+        while self.step < self.cfg.total_steps:
+            if self.phase != self.curriculum.phase_at(self.step):
                 # A new phase: new worlds and this phase's planner. Episodes in flight are
                 # dropped (their planner transitions would mix two phases' policies).
                 self.env.close()
                 self.stats = EpisodeStats()
                 self._make_driver()
-            drv = self.driver
-            learn_ex = drv.executor.learns
-            learn_pl = self._learn_planner = drv.planner.learns
-            buf = RolloutBuffer(T, n, self.device)
-            if learn_ex:
-                buf.initial_state = drv.state.clone()
-            for t in range(T):
-                t0 = time.perf_counter()
-                env0 = drv.env_seconds
-                drv.decide(on_decision=self._on_decision)
-                # sub-goal distance at the start of each turn (for the executor's success rate)
-                self.turn_d0[drv.starts] = drv.executor_obs["subgoal"][drv.starts, 0]
-                s = drv.step()
-                res = s.result
-                if learn_ex:
-                    trunc = res.executor_turn_end & ~res.executor_stopped
-                    buf.add(t, obs=s.obs, actions=torch.as_tensor(s.out["action"]), log_probs=s.out["log_prob"],
-                            values=s.out["value"], rewards=torch.as_tensor(res.rewards[:, 1]),
-                            dones=torch.as_tensor(res.executor_stopped), truncated=torch.as_tensor(trunc),
-                            starts=torch.as_tensor(s.starts), bootstrap_values=torch.as_tensor(self._bootstrap(res, s.state, trunc)))
-                # Success over the turns whose sub-goal was not already within reach at the start.
-                counted = res.executor_turn_end & (self.turn_d0 >= self.env.config.subgoal_radius)
-                self.executor_success.extend(res.executor_reached[counted].tolist())
-                if learn_pl:
-                    self._planner_rewards(res)
-                self._count_episodes(res)
-                self.step += n * self.dist.world_size  # total over all workers
-                # sim: time inside env.step; inference: the networks and the bookkeeping
-                sim = drv.env_seconds - env0
-                clock.timing["inference"] += time.perf_counter() - t0 - sim
-                clock.timing["sim"] += sim
-            t4 = time.perf_counter()
+            self._learn_planner = self.driver.planner.learns
+            buf = self._rollout(clock)
+            t0 = time.perf_counter()
             metrics = {"phase": PHASES[self.phase.name]}
-            # the planner's update of this iteration: on the second thread, if there is one,
-            # from here on (the all_true check is a collective, so it stays on this thread)
-            args = (learn_pl and self._planner_ready(), torch.get_num_threads())
+            # the planner's update: on the second thread, if there is one, from here on (the
+            # all_true check is a collective, so it stays on this thread)
+            args = (self._learn_planner and self._planner_ready(), torch.get_num_threads())
             job = self.pool.submit(self._learn_planner_step, *args) if self.pool is not None else None
-            t5 = time.perf_counter()
-            if learn_ex:
-                # V(o_T) for worlds still inside a turn (their memory continues)
-                rows = np.flatnonzero(drv.turn != PLANNER)
-                last = np.zeros(n, np.float32)
-                if len(rows):
-                    last[rows] = self._values({k: v[rows] for k, v in drv.executor_obs.items()}, drv.state[rows])
-                buf.compute_returns(cfg.gamma_ex, cfg.gae_lambda, last_values=torch.as_tensor(last))
-                metrics |= {f"learner/executor_{k}": v for k, v in
-                            ppo_update(self.executor, buf, self.opts["executor"], self.ppo, self.gen).items()}
+            t1 = time.perf_counter()
+            if buf is not None:
+                metrics |= self._update_executor(buf)
             self.updates["executor"] += 1
-            clock.learning["executor"] += time.perf_counter() - t5
+            clock.learning["executor"] += time.perf_counter() - t1
             if self.executor_success:
                 metrics["metrics/executor_success"] = float(np.mean(self.executor_success))
             planner_metrics, seconds = job.result() if job is not None else self._learn_planner_step(*args)
             clock.learning["planner"] += seconds
             metrics |= planner_metrics
-            clock.timing["update"] += time.perf_counter() - t4
+            clock.timing["update"] += time.perf_counter() - t0
             self._end_of_update(self.updates["executor"], metrics, clock)
             if distributed.should_stop():  # SIGTERM / SIGINT on any worker: save below and return
                 break
         return self._finish(clock)
-
