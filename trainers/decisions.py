@@ -27,7 +27,7 @@ class DecisionBuffer:
         self.pending = np.zeros(n, np.bool_)
         self.reward = np.zeros(n)  # earned so far by each pending decision
         self.value = np.zeros(n, np.float32)  # V of each pending decision's observation
-        self.data: dict[str, torch.Tensor] | None = None  # their obs/*, stop, subgoal, log_prob (allocated on first use)
+        self.data: dict[str, torch.Tensor] | None = None  # their obs/*, stop, subgoal, log_prob (made on first use)
         self.closed: list[dict] = []
 
     def __len__(self) -> int:
