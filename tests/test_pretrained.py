@@ -59,16 +59,16 @@ def test_export_round_trip(tmp_path):
 
 def test_planner_architecture_must_match_to_fine_tune(tmp_path):
     """The shipped PLEX-GRU's planner has the value-iteration module: a run without it
-    refuses the weights, naming the setting. It was trained at 64 px, and a run at the
-    cpu preset's 48 px refuses it too, naming the resolution."""
+    refuses the weights, naming the setting. It was trained with the cpu preset's 48 px, and
+    a run at 64 px refuses it too, naming the resolution."""
     assert load_checkpoint("pretrained:plex-gru")["config"]["planner_value_iteration"] is True
     cfg = replace(preset_defaults("cpu"), run_dir=str(tmp_path / "ft"), total_steps=64, num_envs=2,
                   rollout_steps=16, progress=False, record_interval=0, checkpoint="pretrained:plex-gru",
-                  resolution=64, planner_value_iteration=False)
+                  planner_value_iteration=False)
     with pytest.raises(CheckpointError, match="planner_value_iteration"):
         make_trainer(validate(cfg))
-    with pytest.raises(CheckpointError, match="resolution=64 but this run asks for 48"):
-        make_trainer(validate(replace(cfg, resolution=48, planner_value_iteration=True)))
+    with pytest.raises(CheckpointError, match="resolution=48 but this run asks for 64"):
+        make_trainer(validate(replace(cfg, resolution=64, planner_value_iteration=True)))
 
 
 @pytest.mark.parametrize("name", ["plex-gru", "ppo-gru"])
