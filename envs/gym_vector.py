@@ -43,8 +43,7 @@ Arguments: ``num_envs``, ``render_mode``, ``copy`` and those of
 :class:`~plex_ma.envs.rules.NavConfig`.
 
 Speed: ``python -m plex_ma.bench gymvec`` times it against ``SyncVectorEnv`` over N single
-envs (the README has the figures: 5.5-6.5 times the steps/s at 16 worlds and 64 px on a
-2-core machine). The per-step Python of the single envs is what it saves; episode
+envs (docs/performance.md). The per-step Python of the single envs is what it saves; episode
 resets (drawing an episode and its goal's distance field, a few ms each) and rendering
 cost both the same, so short episodes and large images narrow the gap.
 """

@@ -55,8 +55,8 @@ class Executor(nn.Module):
     min(sub-goal distance, 2 m), started at ``EXECUTOR_STOP_SLOPE`` x (``stop_prior`` -
     distance) + ln 3, so an untrained executor (three other logits near 0) has p(STOP) 0.5 at
     ``stop_prior`` m from its sub-goal, 0.9 at 0.1 m nearer and below 2% from 0.25 m
-    farther. (Trained without it under the cpu preset's STOP penalty, executors never chose
-    STOP and turned in place at their sub-goals: docs/results.md.)
+    farther. (Without it, executors trained under the cpu preset's STOP penalty never chose
+    STOP and turned in place at their sub-goals.)
     """
 
     goal_key = "subgoal"
@@ -83,8 +83,7 @@ class Executor(nn.Module):
         self.eli_head = layer_init(nn.Linear(self.memory.out_dim, eli_dim))
         # goal_skip: the heads also read the encoded goal vector, so that "turn towards the
         # goal" is a simple function of their input from the first update on (through the
-        # memory alone, 3 goal inputs beside 512 image features are learnt too slowly: the
-        # policy's entropy collapsed before it did, README).
+        # memory alone, 3 goal inputs beside 512 image features are learnt too slowly).
         head_in = eli_dim + (3 if goal_skip else 0)
         self.actor = layer_init(nn.Linear(head_in, NUM_ACTIONS), std=0.01)
         self.critic = layer_init(nn.Linear(head_in, 1), std=1.0)
