@@ -62,7 +62,6 @@ class raw_env(OneWorldEnv, AECEnv, EzPickle):
                                    "executor": executor_observation_space(self.config)}
         self.action_spaces = {"planner": planner_action_space(self.config),
                               "executor": executor_action_space(self.config)}
-        self.executor_memory_restart = self.config.executor_memory_restart
         self._path: list[np.ndarray] = []
         self._seeded = False
 

@@ -103,7 +103,6 @@ unchanged (`pettingzoo.test.render_test` passes headless).
 | `slack_reward`, `collision_reward`, `success_reward`, `subgoal_reward` | -0.01, -0.01, 10, 1 | reward weights |
 | `success_distance`, `subgoal_radius` | 0.2, 0.5 | metres |
 | `executor_stop_penalty`, `executor_collision_reward` | 0.0, 0.0 | the executor's extra rewards for a STOP outside `subgoal_radius` and for a blocked move (each <= 0) |
-| `executor_memory_restart` | True | hint for trainers: restart the executor's memory with each sub-goal (`env.unwrapped.executor_memory_restart`) |
 | `render_mode` | None | "human" or "rgb_array" (see Rendering) |
 
 ## Why `is_parallelizable` is False, and `max_cycles_test`

@@ -101,7 +101,6 @@ class PlexConfig(NavConfig):
     subgoal_radius: float = 0.5  # distance (m) to its sub-goal within which the executor's STOP earns subgoal_reward
     executor_stop_penalty: float = 0.0  # executor reward for a STOP farther than subgoal_radius from its sub-goal (<= 0)
     executor_collision_reward: float = 0.0  # executor reward added on a blocked move, beside collision_reward (<= 0)
-    executor_memory_restart: bool = True  # hint to trainers: restart the executor's memory with each sub-goal
 
     def validate(self) -> None:
         super().validate()
@@ -155,10 +154,6 @@ def _serial_for_one_world(method):
             numba.set_num_threads(prev)
 
     return run
-
-
-def _wrap(a):
-    return (a + np.pi) % (2 * np.pi) - np.pi
 
 
 class OneWorldEnv:

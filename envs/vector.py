@@ -61,7 +61,6 @@ class PlexVectorEnv:
         self.executor_observation_space = executor_observation_space(self.config)
         self.planner_action_space = planner_action_space(self.config)
         self.executor_action_space = executor_action_space(self.config)
-        self.executor_memory_restart = self.config.executor_memory_restart
         self._zero_planner = {k: np.zeros((self.num_envs,) + s.shape, s.dtype)
                               for k, s in self.planner_observation_space.spaces.items()}
 

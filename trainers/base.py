@@ -13,6 +13,7 @@ import time
 import warnings
 from collections import defaultdict, deque
 from collections.abc import Callable
+from typing import ClassVar
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -88,10 +89,10 @@ def reads_ego_map(nets: dict[str, torch.nn.Module]) -> bool:
 class EpisodeStats:
     """Rolling window of finished episodes for logging."""
 
-    window: int = 100
-    success: deque = field(default_factory=lambda: deque(maxlen=100))
-    spl: deque = field(default_factory=lambda: deque(maxlen=100))
-    reward: deque = field(default_factory=lambda: deque(maxlen=100))
+    window: ClassVar[int] = 100  # episodes kept
+    success: deque = field(default_factory=lambda: deque(maxlen=EpisodeStats.window))
+    spl: deque = field(default_factory=lambda: deque(maxlen=EpisodeStats.window))
+    reward: deque = field(default_factory=lambda: deque(maxlen=EpisodeStats.window))
 
     def add(self, info: dict, reward: float) -> None:
         self.success.append(info["success"])
@@ -188,9 +189,6 @@ class Trainer:
         if state.get("format") != CHECKPOINT_FORMAT:
             raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}")
         saved = saved_config(state)
-        planner = state.get("models", {}).get("planner")
-        if isinstance(planner, dict) and "stop_skip.weight" not in planner:
-            raise CheckpointError(f"{what} holds a planner with linear heads; plex-ma's planner has only the goal-relative MLP heads")
         for key in ARCH_KEYS + (PLEX_ARCH_KEYS if reads_ego_map(self.nets) else ()):
             if setting(saved, key) != setting(self.cfg, key):
                 raise CheckpointError(f"{what} has {key}={setting(saved, key)!r} but this run asks for "

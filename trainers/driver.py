@@ -15,8 +15,7 @@ One driver iteration is :meth:`PlexDriver.decide` (every world whose turn is the
 gets a decision; a stop ends that episode, the world resets and needs another decision,
 so this repeats until every world is in an executor turn) followed by one
 :meth:`PlexDriver.step` (one executor action in all N worlds at once). The executor's
-memory restarts at the first step of every turn when the env's ``executor_memory_restart``
-hint says so, and at every new episode.
+memory restarts at the first step of every turn (each sub-goal) and at every new episode.
 
 The oracles read the world's ground truth (:mod:`plex_ma.envs.oracle`); their
 ``ground_truth`` attribute is True and every output that used one says so.
@@ -194,7 +193,6 @@ class PlexDriver:
     def __init__(self, env: PlexVectorEnv, planner, executor):
         self.env, self.planner, self.executor = env, planner, executor
         self.n = env.num_envs
-        self.restart_memory = env.executor_memory_restart
         self.env_seconds = 0.0  # time spent inside env.step (the rest is the policies and bookkeeping)
         self.episode_returns: list[float] = []
 
@@ -243,7 +241,7 @@ class PlexDriver:
         out, self.state = self.executor.act(obs, self.state, starts)
         res = self._env_step(action=out["action"], eli=out["eli"])
         ended = res.terminated | res.truncated
-        self.starts = (res.executor_turn_end & self.restart_memory) | ended
+        self.starts = res.executor_turn_end | ended
         return ExecutorStep(obs, starts, out, self.state, res)
 
 

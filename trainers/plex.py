@@ -6,7 +6,7 @@ PLEX runs through the rollout driver (:mod:`.driver`), per iteration:
    a decision (stop, or a sub-goal). A stop ends that world's episode and a new one starts,
    which needs another decision, so this repeats until every world is in an executor turn.
 2. *One executor step* in all N worlds at once (``PlexDriver.step``). The executor's memory
-   restarts at the first step of every turn (the env's ``executor_memory_restart`` hint).
+   restarts at the first step of every turn (each sub-goal).
 3. After ``rollout_steps`` executor steps: a PPO update of the executor on its own rewards
    (gamma_EX per executor step). An executor turn ends at its STOP (terminal), at its
    N_EX-th action (a truncation: bootstrap from V of the observation after it, with the
