@@ -153,38 +153,42 @@ def from_dict(d: dict) -> TrainConfig:
     return TrainConfig(**{k: v for k, v in d.items() if k in known}, env=make_config(PlexConfig, env))
 
 
-PRESETS: dict[str, dict] = {
-    # Finishes in well under two minutes on two cores and still writes a checkpoint.
-    "smoke": dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, n_pl=8, num_scenes=4,
-                  checkpoint_interval=5, keep_checkpoints=1, ppo_epochs=2),
-    # Reward-only PLEX as it learns best per CPU hour here: both agents by PPO on the reward
-    # alone, after a 40k-step executor warm-up under random sub-goals in an open room. Each
-    # departure from the paper and the measurement behind it: docs/results.md.
-    "cpu": dict(total_steps=2_048_000, anneal_lr=True, num_envs=16, resolution=64, rollout_steps=64, n_pl=8, n_ex=18, torch_threads=1,
+def smoke_recipe(plex: bool) -> dict:
+    """Finishes in well under two minutes on two cores and still writes a checkpoint."""
+    return dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, n_pl=8, num_scenes=4,
+                checkpoint_interval=5, keep_checkpoints=1, ppo_epochs=2)
+
+
+def cpu_recipe(plex: bool) -> dict:
+    """Reward-only PLEX as it learns best per CPU hour here: both agents by PPO on the reward
+    alone, after a 40k-step executor warm-up under random sub-goals in an open room; the flat
+    baselines take the same values but keep 16 worlds of 64 px, 64-step rollouts and 4 PPO
+    epochs. Each departure from the paper and the measurement behind it: docs/results.md."""
+    return dict(total_steps=2_048_000, anneal_lr=True, torch_threads=1,
+                num_envs=32 if plex else 16, rollout_steps=32 if plex else 64,
+                resolution=48 if plex else 64, ppo_epochs=1 if plex else 4, n_pl=8, n_ex=18,
                 executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_warmup_steps=40_000,
                 warmup_scenes="open-room", random_subgoal_distance=1.5, random_subgoal_angle=3.14,
                 executor_stop_penalty=-0.5, subgoal_radius=0.2, executor_stop_prior=0.15, executor_heading_prior=3.0,
-                executor_collision_reward=-0.05, planner_value_iteration=True),
-    # The paper's settings: 256 px images, N_PL = 128, 30M steps.
-    "paper": dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128),
-}
+                executor_collision_reward=-0.05, planner_value_iteration=True)
 
-# A preset's settings for the PLEX methods only, over PRESETS (the flat baselines keep those);
-# the speed behind them is in docs/results.md.
-PLEX_PRESETS: dict[str, dict] = {
-    "cpu": dict(num_envs=32, rollout_steps=32, resolution=48, ppo_epochs=1),
-}
+
+def paper_recipe(plex: bool) -> dict:
+    """The paper's settings: 256 px images, N_PL = 128, 30M steps."""
+    return dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128)
+
+
+# Each preset's complete recipe for a method (plex: a PLEX method), as the values that
+# differ from TrainConfig's defaults.
+PRESETS = {"smoke": smoke_recipe, "cpu": cpu_recipe, "paper": paper_recipe}
 
 
 def preset_defaults(preset: str, method: str = "plex-gru") -> TrainConfig:
-    """A TrainConfig holding a preset's values, with its PLEX-only ones for the PLEX methods
-    (and a run dir named after the method)."""
+    """A TrainConfig holding a preset's recipe for ``method`` (and a run dir named after both)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
-    plex = PLEX_PRESETS.get(preset, {}) if method.startswith("plex") else {}
-    cfg = replace(TrainConfig(), preset=preset, method=method, **(PRESETS[preset] | plex))
-    cfg.run_dir = f"runs/{method}-{preset}"
-    return cfg
+    return replace(TrainConfig(), preset=preset, method=method, run_dir=f"runs/{method}-{preset}",
+                   **PRESETS[preset](method.startswith("plex")))
 
 
 def validate(cfg: TrainConfig) -> TrainConfig:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from plex_ma.config import PLEX_PRESETS, PRESETS, TrainConfig, from_dict, parse, preset_defaults, replace, setting, validate
+from plex_ma.config import PRESETS, TrainConfig, from_dict, parse, preset_defaults, replace, setting, validate
 from plex_ma.evaluate import main as evaluate_main
 from plex_ma.trainers.checkpoint import CheckpointError, atomic_save, find_resumable, load_checkpoint, save_checkpoint
 from plex_ma.trainers import make_trainer
@@ -292,20 +292,21 @@ def test_cli_help_and_bad_config(capsys):
 
 
 def test_cpu_preset_plex_settings_apply_to_plex_only():
-    """The cpu preset's PLEX settings (config.PLEX_PRESETS) reach plex-gru and plex-smt; the
-    flat baselines keep the shared ones; a flag on the command line still wins."""
-    plex_only = PLEX_PRESETS["cpu"]
-    assert {"num_envs", "resolution", "ppo_epochs"} <= plex_only.keys()
+    """The cpu preset's recipe for PLEX (config.cpu_recipe(plex=True)) reaches plex-gru and
+    plex-smt, the flat baselines get its flat recipe; a flag on the command line still wins."""
+    plex, flat = PRESETS["cpu"](True), PRESETS["cpu"](False)
+    plex_only = {k: v for k, v in plex.items() if flat[k] != v}
+    assert {"num_envs", "resolution", "ppo_epochs"} <= plex_only.keys() and plex.keys() == flat.keys()
     for method in ("plex-gru", "plex-smt"):
         cfg = preset_defaults("cpu", method)
-        assert all(setting(cfg, k) == v for k, v in plex_only.items()), method
+        assert all(setting(cfg, k) == v for k, v in plex.items()), method
     for method in ("ppo-gru", "ppo-smt", "ppo-gru-map"):
         cfg = preset_defaults("cpu", method)
-        assert all(setting(cfg, k) == PRESETS["cpu"].get(k, setting(TrainConfig(), k)) for k in plex_only), method
+        assert all(setting(cfg, k) == v for k, v in flat.items()), method
         assert all(setting(cfg, k) != v for k, v in plex_only.items()), method
     cfg = parse(["--preset", "cpu", "--resolution", "64", "--ppo-epochs", "4"])
-    assert cfg.env.resolution == 64 and cfg.ppo_epochs == 4 and cfg.num_envs == plex_only["num_envs"]
-    assert parse(["--preset", "cpu", "--method", "ppo-gru"]).num_envs == PRESETS["cpu"]["num_envs"]
+    assert cfg.env.resolution == 64 and cfg.ppo_epochs == 4 and cfg.num_envs == plex["num_envs"]
+    assert parse(["--preset", "cpu", "--method", "ppo-gru"]).num_envs == flat["num_envs"]
 
 
 def test_env_settings_are_train_flags_that_reach_the_env(tmp_path):
