@@ -104,7 +104,7 @@ from pettingzoo import AECEnv
 from .plex_nav import env as native_env
 from .actions import InvalidAction, discrete
 from .rules import ELI_DIM
-from .sim.core import ACTION_NAMES
+from .sim.core import ACTION_NAMES, wrap_angle
 from .spaces import MAX_GOAL_DISTANCE
 
 AGENT_IDS = {"planner": 0, "executor": 1}
@@ -157,7 +157,7 @@ def compat_env(image_size: int = 32, subgoal_distances=None, subgoal_directions:
 def subgoal_grid(distances, directions: int) -> np.ndarray:
     """(len(distances) * directions, 2) polar sub-goals; row ``i * directions + j`` is
     (distances[i], 2 pi j / directions wrapped to [-pi, pi))."""
-    th = (2 * np.pi * np.arange(directions) / directions + np.pi) % (2 * np.pi) - np.pi
+    th = wrap_angle(2 * np.pi * np.arange(directions) / directions)
     return np.array([(d, t) for d in distances for t in th], np.float32)
 
 

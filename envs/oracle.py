@@ -26,7 +26,7 @@ from numba import njit
 
 from .rules import ELI_DIM, PlexWorlds
 from .sim import kernels as K
-from .sim.core import MOVE_FORWARD, STOP, TURN_LEFT, TURN_RIGHT
+from .sim.core import MOVE_FORWARD, STOP, TURN_LEFT, TURN_RIGHT, wrap_angle
 
 
 @njit(cache=True)
@@ -62,10 +62,6 @@ def _along_path(nav, moves, off, h, w, ox, oy, cs, field, x, y, length):
         v = nxt
     r, c = v // w, v % w
     return ox + (c + 0.5) * cs, oy + (r + 0.5) * cs, True
-
-
-def _wrap(a):
-    return (a + np.pi) % (2 * np.pi) - np.pi
 
 
 class OraclePlanner:
@@ -137,7 +133,7 @@ class OracleExecutor:
                 tx, ty = w.subgoal[i]
             else:
                 tx, ty, _ = _along_path(*args, self.fields[i], px, py, self.aim)
-            ang = _wrap(math.atan2(ty - py, tx - px) - sim.heading[i])
+            ang = wrap_angle(math.atan2(ty - py, tx - px) - sim.heading[i])
             if abs(ang) <= self.half_turn:
                 act[k] = MOVE_FORWARD
             else:

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from plex_ma.config import TrainConfig
+from plex_ma.envs.sim.core import wrap_angle
 from plex_ma.trainers.evaluation import load_policies, run_episodes
 
 TAIL = 100  # actions at the end of an episode over which the spread is measured
@@ -53,7 +54,7 @@ class Observer:
         if rows is not None:  # planner decisions: the sub-goals just set (snapped, fixed in the world)
             for r in rows:
                 dx, dy = w.subgoal[r] - sim.pos[r]
-                ang = (np.arctan2(dy, dx) - sim.heading[r] + np.pi) % (2 * np.pi) - np.pi
+                ang = wrap_angle(np.arctan2(dy, dx) - sim.heading[r])
                 self.last[r] = (float(np.hypot(dx, dy)), float(w.subgoal_dist[r]), float(np.degrees(ang)))
         else:  # an executor action in every world
             for j in np.setdiff1d(np.arange(len(self.paths)), ended):

@@ -39,6 +39,11 @@ ACTION_NAMES = ("STOP", "MOVE_FORWARD", "TURN_LEFT", "TURN_RIGHT")
 NUM_ACTIONS = len(ACTION_NAMES)
 
 
+def wrap_angle(a):
+    """An angle in radians (a float or an array) wrapped to [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
 class BatchedSim:
     """N worlds over one :class:`SceneBank`.
 
@@ -113,7 +118,7 @@ class BatchedSim:
                              "is not navigable")
         self.scene_idx[i] = s
         self.pos[i] = start
-        self.heading[i] = (episode.start_heading + math.pi) % (2 * math.pi) - math.pi
+        self.heading[i] = wrap_angle(episode.start_heading)
         self.goal[i] = goal
         h, w = self.bank.h[s], self.bank.w[s]
         if field is None:
@@ -175,7 +180,7 @@ class BatchedSim:
         if sp > 0 or sh > 0:
             noise = self.rng.normal(size=(self.n, 3)) * np.array([sp, sp, sh])
             est = est + noise
-            est[:, 2] = (est[:, 2] + math.pi) % (2 * math.pi) - math.pi
+            est[:, 2] = wrap_angle(est[:, 2])
         self.est_pose[active] = est[active]
         if self.use_egomap:
             K.pick(K.egomap_update, self.n)(self.depth, self.est_pose, self.amap_origin, self.amap, self.amap_cell,
@@ -211,8 +216,7 @@ class BatchedSim:
         pose = self.est_pose[rows] if noisy else np.concatenate([self.pos[rows], self.heading[rows, None]], 1)
         d = np.asarray(targets, np.float64).reshape(-1, 2) - pose[:, :2]
         dist = np.hypot(d[:, 0], d[:, 1])
-        ang = np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2]
-        ang = (ang + math.pi) % (2 * math.pi) - math.pi
+        ang = wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2])
         return np.stack([dist, ang], 1).astype(np.float32)
 
     def distance_to(self, targets: np.ndarray, rows: np.ndarray) -> np.ndarray:

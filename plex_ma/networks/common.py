@@ -23,6 +23,11 @@ def encode_polar(vec: torch.Tensor) -> torch.Tensor:
     return torch.stack([vec[..., 0], torch.cos(vec[..., 1]), torch.sin(vec[..., 1])], dim=-1)
 
 
+def wrap_angle(a: torch.Tensor) -> torch.Tensor:
+    """Angles in radians wrapped to [-pi, pi]."""
+    return torch.atan2(torch.sin(a), torch.cos(a))
+
+
 def _as_tensor(x, device: torch.device, dtype: torch.dtype | None = None) -> torch.Tensor:
     if isinstance(x, np.ndarray):
         x = torch.from_numpy(x)

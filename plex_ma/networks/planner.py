@@ -11,7 +11,7 @@ from torch import nn
 from torch.distributions import Categorical, Normal
 
 from plex_ma.envs.rules import ELI_DIM
-from plex_ma.networks.common import _as_tensor, _conv_out_dim, layer_init
+from plex_ma.networks.common import _as_tensor, _conv_out_dim, layer_init, wrap_angle
 from plex_ma.networks.value_iteration import ValueIteration
 
 # float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
@@ -169,7 +169,7 @@ class Planner(MapEncoder):
         if vin_subgoal is not None:
             # the value-iteration module's sub-goal, blended into the goal with the same
             # scale as the offsets (its direction taken the short way round from the goal's)
-            turn = torch.atan2(torch.sin(vin_subgoal[:, 1] - goal[:, 1]), torch.cos(vin_subgoal[:, 1] - goal[:, 1]))
+            turn = wrap_angle(vin_subgoal[:, 1] - goal[:, 1])
             vin_prior = torch.stack([vin_subgoal[:, 0], goal[:, 1] + turn], dim=1)
             prior = prior + scale * (vin_prior - prior)
         mean = self.subgoal_mean(h) * scale + prior
@@ -191,7 +191,7 @@ class Planner(MapEncoder):
         """Map raw samples into the action box: rho clipped to [min_subgoal_distance, rho_max],
         theta wrapped."""
         rho = subgoal[..., 0].clamp(self.min_subgoal_distance, self.rho_max)
-        theta = torch.atan2(torch.sin(subgoal[..., 1]), torch.cos(subgoal[..., 1])).clamp(-PI32, PI32)
+        theta = wrap_angle(subgoal[..., 1]).clamp(-PI32, PI32)
         return torch.stack([rho, theta], dim=-1)
 
     @torch.no_grad()
