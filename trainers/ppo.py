@@ -105,16 +105,9 @@ def _map(fn, x: Tensors) -> Tensors:
     return {k: fn(v) for k, v in x.items()} if isinstance(x, dict) else fn(x)
 
 
-@dataclass
-class Transitions:
-    """``n`` single transitions, each tensor (n, ...), with their advantages and returns."""
-
-    obs: dict[str, torch.Tensor]
-    actions: Tensors
-    log_probs: torch.Tensor
-    values: torch.Tensor
-    advantages: torch.Tensor
-    returns: torch.Tensor
+class Transitions(Minibatch):
+    """``n`` single transitions with their advantages and returns: a non-recurrent
+    :class:`Minibatch` (each tensor (n, ...)) that splits into shuffled smaller ones."""
 
     def minibatches(self, num_minibatches: int, generator: torch.Generator | None = None) -> Iterator[Minibatch]:
         """Shuffled minibatches covering the transitions once."""
