@@ -64,6 +64,8 @@ class TrainConfig:
     """Adam learning rate (both agents)"""
     planner_lr: float | None = None
     """PLEX only: the planner's Adam learning rate (None: --lr)"""
+    planner_subgoal_std: float = 0.5
+    """PLEX only: the starting standard deviation of the planner's sampled sub-goal (rho in m, theta in rad)"""
     anneal_lr: bool = False
     """decay every learning rate linearly to zero at --total-steps (CleanRL's anneal_lr)"""
     rollout_steps: int = 64
@@ -167,7 +169,7 @@ def cpu_recipe(plex: bool) -> dict:
     return dict(total_steps=2_048_000, anneal_lr=True, torch_threads=1,
                 num_envs=32 if plex else 16, rollout_steps=32 if plex else 64,
                 resolution=48 if plex else 64, ppo_epochs=1 if plex else 4, n_pl=8, n_ex=18,
-                executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_warmup_steps=40_000,
+                executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_subgoal_std=0.25, planner_warmup_steps=40_000,
                 warmup_scenes="open-room", random_subgoal_distance=1.5, random_subgoal_angle=3.14,
                 executor_stop_penalty=-0.5, subgoal_radius=0.2, executor_stop_prior=0.15, executor_heading_prior=3.0,
                 executor_collision_reward=-0.05, planner_value_iteration=True)
@@ -206,6 +208,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.executor_hidden >= 8, "executor_hidden", "must be >= 8")
     need(cfg.lr > 0, "lr", "must be positive")
     need(cfg.planner_lr is None or cfg.planner_lr > 0, "planner_lr", "must be positive")
+    need(cfg.planner_subgoal_std > 0, "planner_subgoal_std", "must be positive")
     need(cfg.rollout_steps >= 2, "rollout_steps", "must be >= 2")
     need(cfg.n_pl >= 1, "n_pl", "must be >= 1")
     for g in ("gamma_ex", "gamma_pl", "gamma_flat", "gae_lambda"):

@@ -67,7 +67,7 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     memory = cfg.method.split("-")[1]
     if cfg.method.startswith("plex"):
         planner = Planner(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max, stop_distance=cfg.env.success_distance,
-                          subgoal_radius=cfg.env.subgoal_radius,
+                          subgoal_radius=cfg.env.subgoal_radius, init_std=cfg.planner_subgoal_std,
                           value_iteration=cfg.planner_value_iteration)
         return {"planner": planner,
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,

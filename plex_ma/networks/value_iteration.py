@@ -87,6 +87,9 @@ class ValueIteration(nn.Module):
         lo, hi = self.crop
         pad = 2  # cells round the reach that paths from the agent may pass through
         near_cost = cost[:, lo - pad:hi + pad, lo - pad:hi + pad].detach()
+        # the goal's cell is always enterable: a 0.5 m cell that holds the goal and a wall is
+        # an obstacle cell, and a sub-goal search that cannot enter it never sets the goal
+        near_cost = torch.where(at_goal[:, lo - pad:hi + pad, lo - pad:hi + pad], torch.ones_like(near_cost), near_cost)
         at_agent = torch.zeros_like(near_cost, dtype=torch.bool)
         at_agent[:, self.reach_cells + pad, self.reach_cells + pad] = True
         from_agent = bellman(near_cost, at_agent, 2 * (self.reach_cells + pad), 0)
