@@ -34,7 +34,8 @@ import numpy as np
 
 from .actions import InvalidAction, discrete, real
 from .sim import BatchedSim, Episode, Geodesics, scene_bank
-from .sim.core import ACTION_NAMES, NUM_ACTIONS, STOP
+from .sim.core import (ACTION_NAMES, NUM_ACTIONS, POSE_NOISE_RULE, RESOLUTION_RULE, STOP, check_pose_noise,
+                        check_resolution)
 from .sim.episodes import default_episode_file, load_episodes, sample_episode
 
 PLANNER, EXECUTOR = 0, 1
@@ -65,8 +66,12 @@ class NavConfig:
         def bad(name, why):
             raise ValueError(f"config {name}={getattr(self, name)!r}: {why}")
 
-        if not isinstance(self.resolution, (int, np.integer)) or not 16 <= self.resolution <= 1024:
-            bad("resolution", "must be an integer in [16, 1024]")
+        for name, check, rule in (("resolution", check_resolution, RESOLUTION_RULE),
+                                  ("pose_noise", check_pose_noise, POSE_NOISE_RULE)):
+            try:
+                check(getattr(self, name))  # the simulator's rule, reported as this config's field
+            except ValueError:
+                bad(name, rule)
         if not isinstance(self.max_steps, (int, np.integer)) or self.max_steps < 1:
             bad("max_steps", "must be a positive integer")
         if self.split not in ("train", "val", "test"):
@@ -75,12 +80,6 @@ class NavConfig:
             bad("scenes", "must be a source name or a directory")
         if self.num_scenes is not None and (not isinstance(self.num_scenes, (int, np.integer)) or self.num_scenes < 1):
             bad("num_scenes", "must be a positive integer or None")
-        try:
-            pn = tuple(float(v) for v in self.pose_noise)
-        except (TypeError, ValueError):
-            bad("pose_noise", "must be two numbers (position std m, heading std rad)")
-        if len(pn) != 2 or not all(math.isfinite(v) and v >= 0 for v in pn):
-            bad("pose_noise", "must be two finite non-negative numbers")
         for name in ("slack_reward", "collision_reward", "success_reward"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v):

@@ -82,6 +82,14 @@ def test_near_goal_in_the_open_is_the_sub_goal():
     assert np.allclose(_subgoal(np.zeros((32, 32)), (1.2, -0.7)), (1.2, -0.7), atol=1e-5)
 
 
+def test_a_near_goal_in_a_cell_marked_as_obstacle_is_still_the_sub_goal():
+    """A 0.5 m cell that holds the goal beside a wall is marked as an obstacle; the sub-goal
+    search still enters it, so the goal itself is the sub-goal, not a free cell next to it."""
+    obstacles = np.zeros((32, 32))
+    obstacles[13, 16] = 1.0  # the goal's cell, 1.2 m ahead
+    assert np.allclose(_subgoal(obstacles, (1.2, 0.0)), (1.2, 0.0), atol=1e-5)
+
+
 def test_wall_with_a_gap_on_the_right_leads_right_and_its_mirror_left():
     wall = np.zeros((32, 32))
     wall[12, :] = 1.0

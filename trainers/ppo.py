@@ -22,9 +22,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterator
 
-import numpy as np
 import torch
 from torch import nn
+
+from plex_ma.networks.common import as_tensor
 
 from . import distributed as _dist
 
@@ -46,12 +47,6 @@ class PPOConfig:
     target_kl: float | None = None  # stop the epochs early once approx_kl exceeds this
 
 
-def _t(x, dtype=None, device=None) -> torch.Tensor:
-    if isinstance(x, np.ndarray):
-        x = torch.from_numpy(x)
-    return torch.as_tensor(x, dtype=dtype, device=device)
-
-
 def compute_gae(rewards, values, dones, truncated, bootstrap_values, gamma: float, lam: float):
     """GAE(lambda) advantages and returns, each (T, B) float32.
 
@@ -71,9 +66,9 @@ def compute_gae(rewards, values, dones, truncated, bootstrap_values, gamma: floa
     delta_t = r_t + gamma * V_next_t - V(o_t);  A_t = delta_t + gamma * lam * (1 - done_t) * A_{t+1};
     returns = A + values.
     """
-    rewards, values, bootstrap_values = (_t(x, torch.float32) for x in (rewards, values, bootstrap_values))
-    truncated = _t(truncated, torch.bool)
-    ended = _t(dones, torch.bool) | truncated
+    rewards, values, bootstrap_values = (as_tensor(x, dtype=torch.float32) for x in (rewards, values, bootstrap_values))
+    truncated = as_tensor(truncated, dtype=torch.bool)
+    ended = as_tensor(dones, dtype=torch.bool) | truncated
     next_values = torch.cat([values[1:], bootstrap_values[-1:]], dim=0)
     next_values = torch.where(truncated, bootstrap_values, torch.where(ended, 0.0, next_values))
     deltas = rewards + gamma * next_values - values
@@ -164,7 +159,7 @@ class RolloutBuffer:
         return torch.zeros(self.num_steps, self.num_envs, *x.shape[1:], dtype=x.dtype, device=self.device)
 
     def _write(self, store: dict, key: str, t: int, x, dtype=None) -> None:
-        x = _t(x, dtype, self.device).detach()  # a stored tensor must never join a graph
+        x = as_tensor(x, self.device, dtype).detach()  # a stored tensor must never join a graph
         if key not in store:
             store[key] = self._alloc(x)
         store[key][t] = x
@@ -189,7 +184,7 @@ class RolloutBuffer:
         last step is not done (see ``compute_gae``)."""
         d = self.data
         if last_values is not None:
-            last = _t(last_values, torch.float32, self.device)
+            last = as_tensor(last_values, self.device, torch.float32)
             ended = d["dones"][-1] | d["truncated"][-1]
             d["bootstrap_values"][-1] = torch.where(ended, d["bootstrap_values"][-1], last)
         d["advantages"], d["returns"] = compute_gae(d["rewards"], d["values"], d["dones"], d["truncated"],

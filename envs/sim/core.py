@@ -44,6 +44,29 @@ def wrap_angle(a):
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
+MIN_RESOLUTION, MAX_RESOLUTION = 8, 1024  # px: the image sizes the renderer takes
+RESOLUTION_RULE = f"must be an integer in [{MIN_RESOLUTION}, {MAX_RESOLUTION}]"
+POSE_NOISE_RULE = "must be two finite non-negative numbers (position std m, heading std rad)"
+
+
+def check_resolution(resolution) -> int:
+    """``resolution`` as an int; ValueError unless it follows RESOLUTION_RULE."""
+    if not isinstance(resolution, (int, np.integer)) or not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
+        raise ValueError(f"resolution {RESOLUTION_RULE}, got {resolution!r}")
+    return int(resolution)
+
+
+def check_pose_noise(pose_noise) -> tuple[float, float]:
+    """``pose_noise`` as (position std, heading std); ValueError unless it follows POSE_NOISE_RULE."""
+    try:
+        pn = tuple(float(v) for v in pose_noise)
+    except (TypeError, ValueError):
+        pn = ()
+    if len(pn) != 2 or not all(math.isfinite(v) and v >= 0 for v in pn):
+        raise ValueError(f"pose_noise {POSE_NOISE_RULE}, got {pose_noise!r}")
+    return pn
+
+
 class BatchedSim:
     """N worlds over one :class:`SceneBank`.
 
@@ -70,14 +93,8 @@ class BatchedSim:
                  pose_noise: tuple[float, float] = (0.0, 0.0), egomap: bool = True, seed: int = 0):
         if not isinstance(num_worlds, (int, np.integer)) or num_worlds < 1:
             raise ValueError(f"num_worlds must be a positive integer, got {num_worlds!r}")
-        if not isinstance(resolution, (int, np.integer)) or not (8 <= resolution <= 1024):
-            raise ValueError(f"resolution must be an integer in [8, 1024], got {resolution!r}")
-        try:
-            pn = tuple(float(v) for v in pose_noise)
-        except (TypeError, ValueError):
-            raise ValueError(f"pose_noise must be two finite non-negative stds, got {pose_noise!r}") from None
-        if len(pn) != 2 or not all(math.isfinite(v) and v >= 0 for v in pn):
-            raise ValueError(f"pose_noise must be two finite non-negative stds, got {pose_noise!r}")
+        check_resolution(resolution)
+        pn = check_pose_noise(pose_noise)
         self.bank = bank
         self.n = int(num_worlds)
         self.resolution = int(resolution)

@@ -28,7 +28,8 @@ def wrap_angle(a: torch.Tensor) -> torch.Tensor:
     return torch.atan2(torch.sin(a), torch.cos(a))
 
 
-def _as_tensor(x, device: torch.device, dtype: torch.dtype | None = None) -> torch.Tensor:
+def as_tensor(x, device: torch.device | None = None, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """``x`` (array, tensor or number) as a tensor on ``device``, sharing a numpy array's memory where it can."""
     if isinstance(x, np.ndarray):
         x = torch.from_numpy(x)
     return torch.as_tensor(x, device=device, dtype=dtype)

@@ -11,7 +11,7 @@ from torch.distributions import Categorical
 
 from plex_ma.envs.rules import ELI_DIM
 from plex_ma.envs.sim.core import MOVE_FORWARD, NUM_ACTIONS, STOP, TURN_LEFT, TURN_RIGHT
-from plex_ma.networks.common import _as_tensor, _conv_out_dim, encode_polar, layer_init
+from plex_ma.networks.common import as_tensor, _conv_out_dim, encode_polar, layer_init
 from plex_ma.networks.memory import GRUMemory, SMTMemory
 
 EXECUTOR_STOP_SLOPE = 20.0  # executor STOP logit per metre nearer the sub-goal than its stop prior
@@ -115,9 +115,9 @@ class Executor(nn.Module):
     def _inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
         """Any leading dims (...) -> memory input (..., emb + 3) and encoded goal (..., 3)."""
         dev = self.device
-        rgb = _as_tensor(obs["rgb"], dev)
-        depth = _as_tensor(obs["depth"], dev, torch.float32)
-        goal = encode_polar(_as_tensor(obs[self.goal_key], dev, torch.float32))
+        rgb = as_tensor(obs["rgb"], dev)
+        depth = as_tensor(obs["depth"], dev, torch.float32)
+        goal = encode_polar(as_tensor(obs[self.goal_key], dev, torch.float32))
         lead = rgb.shape[:-3]
         feat = self.encoder(rgb.reshape(-1, *rgb.shape[-3:]), depth.reshape(-1, *depth.shape[-3:]))
         return torch.cat([feat.view(*lead, -1), goal], dim=-1), goal
@@ -132,7 +132,7 @@ class Executor(nn.Module):
 
     def forward(self, obs: dict, state: torch.Tensor, starts):
         """One step for a batch: (logits (B, 4), value (B,), eli (B, 128), new state)."""
-        starts = _as_tensor(starts, self.device, torch.bool)
+        starts = as_tensor(starts, self.device, torch.bool)
         x, goal = self._inputs(obs)
         out, state = self.memory.step(x, state, starts)
         logits, value, eli = self._heads(out, goal)
@@ -150,12 +150,12 @@ class Executor(nn.Module):
                            initial_state: torch.Tensor):
         """Training pass over (T, B) sequences whose memory is ``initial_state`` before step 0
         and is cleared where ``starts``: (log_prob, entropy, value), each (T, B)."""
-        starts = _as_tensor(starts, self.device, torch.bool)
+        starts = as_tensor(starts, self.device, torch.bool)
         x, goal = self._inputs(obs_seq)
         out = self.memory.sequence(x, initial_state, starts)
         logits, value, _ = self._heads(out, goal)
         dist = Categorical(logits=logits)
-        return dist.log_prob(_as_tensor(actions, self.device).long()), dist.entropy(), value
+        return dist.log_prob(as_tensor(actions, self.device).long()), dist.entropy(), value
 
     def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
         r = self.resolution

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import torch
 
-from plex_ma.networks.common import _as_tensor
+from plex_ma.networks.common import as_tensor
 from plex_ma.networks.executor import Executor
 from plex_ma.networks.planner import MapEncoder
 
@@ -51,8 +51,8 @@ class FlatMapPolicy(FlatPolicy):
     def _inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
         x, goal = super()._inputs(obs)
         dev = self.device
-        ego = _as_tensor(obs["ego_map"], dev, torch.float32)
-        pointgoal = _as_tensor(obs[self.goal_key], dev, torch.float32)
+        ego = as_tensor(obs["ego_map"], dev, torch.float32)
+        pointgoal = as_tensor(obs[self.goal_key], dev, torch.float32)
         lead = ego.shape[:-3]
         feat = self.map(ego.reshape(-1, *ego.shape[-3:]), pointgoal.reshape(-1, 2))
         return torch.cat([x, feat.view(*lead, -1)], dim=-1), goal

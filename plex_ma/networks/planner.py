@@ -11,7 +11,7 @@ from torch import nn
 from torch.distributions import Categorical, Normal
 
 from plex_ma.envs.rules import ELI_DIM
-from plex_ma.networks.common import _as_tensor, _conv_out_dim, layer_init, wrap_angle
+from plex_ma.networks.common import as_tensor, _conv_out_dim, layer_init, wrap_angle
 from plex_ma.networks.value_iteration import ValueIteration
 
 # float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
@@ -146,15 +146,15 @@ class Planner(MapEncoder):
         """(B, hidden + GOAL_FEATURES): the trunk's output and the goal features; and the
         value-iteration module's sub-goal (B, 2) (None without the module)."""
         dev = self.convs[0].weight.device
-        ego = _as_tensor(obs["ego_map"], dev, torch.float32)
-        goal = planner_goal_features(_as_tensor(obs["goal"], dev, torch.float32))
+        ego = as_tensor(obs["ego_map"], dev, torch.float32)
+        goal = planner_goal_features(as_tensor(obs["goal"], dev, torch.float32))
         if self.use_eli:
             # Stop-gradient (paper 3, SPEC 5): the planner's loss must never reach the
             # executor's parameters, so the ELI always enters the planner detached.
-            eli = _as_tensor(obs["eli"], dev, torch.float32).detach()
+            eli = as_tensor(obs["eli"], dev, torch.float32).detach()
         else:
             eli = torch.zeros(ego.shape[0], self.eli_dim, device=dev)
-        trunk, vin_features, vin_subgoal = self.read_map(ego, _as_tensor(obs["goal"], dev, torch.float32))
+        trunk, vin_features, vin_subgoal = self.read_map(ego, as_tensor(obs["goal"], dev, torch.float32))
         parts = [trunk, eli, goal] + ([vin_features] if vin_features is not None else [])
         h = self.fc(torch.cat(parts, dim=1))
         return torch.cat([h, goal], dim=1), vin_subgoal
@@ -162,7 +162,7 @@ class Planner(MapEncoder):
     def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
         """(stop distribution, sub-goal distribution over raw (rho, theta), value (B,))."""
         h, vin_subgoal = self.features(obs)
-        goal = _as_tensor(obs["goal"], h.device, torch.float32)
+        goal = as_tensor(obs["goal"], h.device, torch.float32)
         stop = Categorical(logits=self.stop_logits(h) + self.stop_skip(h[:, -GOAL_FEATURES:]))
         prior = torch.stack([goal[:, 0].clamp(max=self.prior_distance), goal[:, 1]], dim=1)
         scale = ((goal[:, :1] - OFFSET_ZERO_DISTANCE) / (OFFSET_FULL_DISTANCE - OFFSET_ZERO_DISTANCE)).clamp(0.0, 1.0)
