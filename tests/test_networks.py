@@ -92,7 +92,7 @@ def test_planner_eli_is_detached_from_executor():
     out = pl.act(obs)
     before = {k: v.clone() for k, v in ex.state_dict().items()}
     opt = torch.optim.Adam(pl.parameters(), lr=1e-2)
-    log_prob, entropy, value = pl.evaluate_actions(obs, out["stop"], out["subgoal"])
+    log_prob, entropy, value = pl.evaluate_actions(obs, out["stop"], out["raw_subgoal"])
     (-log_prob.mean() - entropy.mean() + (value - 1).pow(2).mean()).backward()
     assert all(p.grad is None for p in ex.parameters())
     assert eli.grad is None  # the planner used a detached copy
@@ -116,9 +116,9 @@ def test_planner_actions():
     pl = Planner(rho_max=4.0, init_std=math.exp(1.5), channels=(8, 8), hidden=64)  # wide std: samples leave the box
     obs = pl.example_obs(256)
     out = pl.act(obs)
-    assert out["stop"].shape == (256,) and out["subgoal"].shape == out["subgoal_env"].shape == (256, 2)
+    assert out["stop"].shape == (256,) and out["raw_subgoal"].shape == out["subgoal"].shape == (256, 2)
     assert out["log_prob"].shape == out["value"].shape == (256,)
-    raw, env = out["subgoal"], out["subgoal_env"]
+    raw, env = out["raw_subgoal"], out["subgoal"]
     assert ((raw[:, 0] < 0) | (raw[:, 0] > 4)).any() and (raw[:, 1].abs() > math.pi).any()
     assert env[:, 0].min() >= 0 and env[:, 0].max() <= 4 and env[:, 1].double().abs().max() <= math.pi
     torch.testing.assert_close(torch.cos(env[:, 1]), torch.cos(raw[:, 1]), atol=1e-5, rtol=0)  # wrapped, not clipped

@@ -100,7 +100,7 @@ def test_ppo_update_reduces_loss_planner():
     for t in range(T):
         obs = pl.example_obs(B, g)
         out = pl.act(obs)
-        buf.add(t, obs=obs, actions={"stop": out["stop"], "subgoal": out["subgoal"]}, log_probs=out["log_prob"],
+        buf.add(t, obs=obs, actions={"stop": out["stop"], "raw_subgoal": out["raw_subgoal"]}, log_probs=out["log_prob"],
                 values=out["value"], rewards=torch.randn(B, generator=g), dones=torch.zeros(B))
     buf.compute_returns(0.95, 0.95, last_values=torch.zeros(B))
     cfg = PPOConfig(num_minibatches=2)
@@ -126,7 +126,7 @@ def test_target_kl_stops_the_epochs_early():
         for t in range(8):
             obs = pl.example_obs(4, g)
             out = pl.act(obs)
-            buf.add(t, obs=obs, actions={"stop": out["stop"], "subgoal": out["subgoal"]}, log_probs=out["log_prob"],
+            buf.add(t, obs=obs, actions={"stop": out["stop"], "raw_subgoal": out["raw_subgoal"]}, log_probs=out["log_prob"],
                     values=out["value"], rewards=torch.randn(4, generator=g), dones=torch.zeros(4))
         buf.compute_returns(0.95, 0.95, last_values=torch.zeros(4))
         opt = torch.optim.Adam(pl.parameters(), lr=1e-3)

@@ -118,7 +118,7 @@ def test_stop_gradient_holds_with_the_value_iteration_planner():
     before = {k: v.clone() for k, v in ex.state_dict().items()}
     out = pl.act(obs)
     opt = torch.optim.Adam(pl.parameters(), lr=1e-2)
-    log_prob, entropy, value = pl.evaluate_actions(obs, out["stop"], out["subgoal"])
+    log_prob, entropy, value = pl.evaluate_actions(obs, out["stop"], out["raw_subgoal"])
     (-log_prob.mean() - entropy.mean() + (value - 1).pow(2).mean()).backward()
     assert all(p.grad is None for p in ex.parameters())
     assert pl.vin.cost.weight.grad.abs().sum() > 0

@@ -27,14 +27,14 @@ class DecisionBuffer:
         self.pending = np.zeros(n, np.bool_)
         self.reward = np.zeros(n)  # earned so far by each pending decision
         self.value = np.zeros(n, np.float32)  # V of each pending decision's observation
-        self.data: dict[str, torch.Tensor] | None = None  # their obs/*, stop, subgoal, log_prob (made on first use)
+        self.data: dict[str, torch.Tensor] | None = None  # their obs/*, stop, raw_subgoal, log_prob (made on first use)
         self.closed: list[dict] = []
 
     def __len__(self) -> int:
         """Closed transitions waiting for :meth:`batch`."""
         return sum(len(c["world"]) for c in self.closed)
 
-    def decide(self, rows: np.ndarray, obs: dict, stop, subgoal, log_prob, value) -> None:
+    def decide(self, rows: np.ndarray, obs: dict, stop, raw_subgoal, log_prob, value) -> None:
         """Decisions in the worlds ``rows`` (a stop (k,), a raw sub-goal (k, 2), their log-prob
         and V(obs)): each closes the world's pending decision, not done, and becomes pending."""
         self._close(rows, done=False)
@@ -42,13 +42,13 @@ class DecisionBuffer:
             n = len(self.pending)
             self.data = {f"obs/{k}": torch.zeros((n,) + v.shape[1:], dtype=torch.as_tensor(v).dtype)
                          for k, v in obs.items()}
-            self.data |= {"stop": torch.zeros(n, dtype=torch.long), "subgoal": torch.zeros(n, 2),
+            self.data |= {"stop": torch.zeros(n, dtype=torch.long), "raw_subgoal": torch.zeros(n, 2),
                           "log_prob": torch.zeros(n)}
         idx = torch.as_tensor(rows)
         for k, v in obs.items():
             self.data[f"obs/{k}"][idx] = torch.as_tensor(v)
         self.data["stop"][idx] = torch.as_tensor(stop)
-        self.data["subgoal"][idx] = subgoal
+        self.data["raw_subgoal"][idx] = raw_subgoal
         self.data["log_prob"][idx] = log_prob
         self.value[rows] = np.asarray(value)
         self.reward[rows] = 0.0
@@ -84,6 +84,6 @@ class DecisionBuffer:
         adv, ret = compute_gae(reward[:, None], value[:, None], done[:, None], cut[:, None], boot[:, None], gamma, lam)
         idx = torch.as_tensor(order)
         return Transitions(obs={k[4:]: v[idx].to(device) for k, v in cat.items() if k.startswith("obs/")},
-                           actions={"stop": cat["stop"][idx].to(device), "subgoal": cat["subgoal"][idx].to(device)},
+                           actions={"stop": cat["stop"][idx].to(device), "raw_subgoal": cat["raw_subgoal"][idx].to(device)},
                            log_probs=cat["log_prob"][idx].to(device), values=torch.as_tensor(value, device=device),
                            advantages=adv[:, 0].to(device), returns=ret[:, 0].to(device))

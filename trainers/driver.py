@@ -47,13 +47,13 @@ class LearnedPlanner:
         self.net, self.deterministic = net, deterministic
 
     def decide(self, obs: dict, rows: np.ndarray) -> dict:
-        """stop (k,) int64 and subgoal (k, 2) float32 for the env; raw, log_prob, value for PPO."""
+        """stop (k,) int64 and subgoal (k, 2) float32 for the env; raw_subgoal, log_prob, value for PPO."""
         with torch.no_grad():
             out = self.net.act(obs, deterministic=self.deterministic)
         # decisions are few: everything comes back to the CPU, where their transitions wait
         out = {k: v.cpu() for k, v in out.items()}
-        return {"stop": out["stop"].numpy().astype(np.int64), "subgoal": out["subgoal_env"].numpy(),
-                "raw": out["subgoal"], "log_prob": out["log_prob"], "value": out["value"]}
+        return {"stop": out["stop"].numpy().astype(np.int64), "subgoal": out["subgoal"].numpy(),
+                "raw_subgoal": out["raw_subgoal"], "log_prob": out["log_prob"], "value": out["value"]}
 
 
 class RandomPlanner:

@@ -143,7 +143,7 @@ class PlexTrainer(Trainer):
         self._count_episodes(d.result)
         if self._learn_planner:
             out = d.out
-            self.decisions.decide(d.rows, d.obs, out["stop"], out["raw"], out["log_prob"], out["value"])
+            self.decisions.decide(d.rows, d.obs, out["stop"], out["raw_subgoal"], out["log_prob"], out["value"])
             self._planner_rewards(d.result)
 
     def _planner_rewards(self, res) -> None:

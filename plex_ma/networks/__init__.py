@@ -33,22 +33,22 @@ for hidden layers, 0.01 for policy heads, 1 for value heads.
 
 from plex_ma.envs.rules import ELI_DIM
 from plex_ma.networks.common import encode_polar, layer_init
-from plex_ma.networks.executor import EXECUTOR_STOP_SLOPE, Executor, RGBDEncoder
+from plex_ma.networks.executor import EXECUTOR_STOP_SLOPE, Executor, ExecutorAct, RGBDEncoder
 from plex_ma.networks.flat import FlatMapPolicy, FlatPolicy
 from plex_ma.networks.memory import GRUMemory, MultiHeadAttention, SMTMemory
 from plex_ma.networks.planner import (GOAL_FEATURES, OFFSET_FULL_DISTANCE, OFFSET_ZERO_DISTANCE, PI32,
                                       STOP_PRIOR_MARGIN, STOP_PRIOR_SLOPE, SUBGOAL_MARGIN, MapEncoder, Planner,
-                                      planner_goal_features)
+                                      PlannerAct, planner_goal_features)
 from plex_ma.networks.value_iteration import (BELLMAN_UNREACHED, DIAGONALS, EGO_CELL, SUBGOAL_REACH, ValueIteration,
                                               bellman, bellman_reference)
 
 __all__ = [
     "ELI_DIM", "encode_polar", "layer_init",
-    "EXECUTOR_STOP_SLOPE", "Executor", "RGBDEncoder",
+    "EXECUTOR_STOP_SLOPE", "Executor", "ExecutorAct", "RGBDEncoder",
     "FlatMapPolicy", "FlatPolicy",
     "GRUMemory", "MultiHeadAttention", "SMTMemory",
     "GOAL_FEATURES", "OFFSET_FULL_DISTANCE", "OFFSET_ZERO_DISTANCE", "PI32", "STOP_PRIOR_MARGIN", "SUBGOAL_MARGIN",
-    "STOP_PRIOR_SLOPE", "MapEncoder", "Planner", "planner_goal_features",
+    "STOP_PRIOR_SLOPE", "MapEncoder", "Planner", "PlannerAct", "planner_goal_features",
     "BELLMAN_UNREACHED", "DIAGONALS", "EGO_CELL", "SUBGOAL_REACH", "ValueIteration", "bellman",
     "bellman_reference",
 ]

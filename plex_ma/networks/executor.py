@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from typing import TypedDict
 
 import torch
 from torch import nn
@@ -11,10 +12,18 @@ from torch.distributions import Categorical
 
 from plex_ma.envs.rules import ELI_DIM
 from plex_ma.envs.sim.core import MOVE_FORWARD, NUM_ACTIONS, STOP, TURN_LEFT, TURN_RIGHT
-from plex_ma.networks.common import as_tensor, _conv_out_dim, encode_polar, layer_init
+from plex_ma.networks.common import _conv_out_dim, as_tensor, encode_polar, layer_init
 from plex_ma.networks.memory import GRUMemory, SMTMemory
 
 EXECUTOR_STOP_SLOPE = 20.0  # executor STOP logit per metre nearer the sub-goal than its stop prior
+
+
+class ExecutorAct(TypedDict):
+    """An executor step per env, as :meth:`Executor.act` returns it."""
+    action: torch.Tensor  # (B,) long: FORWARD, LEFT, RIGHT or STOP
+    log_prob: torch.Tensor  # (B,)
+    value: torch.Tensor  # (B,)
+    eli: torch.Tensor  # (B, ELI_DIM) the Executor Latent Information sent to the planner
 
 
 class RGBDEncoder(nn.Module):
@@ -139,12 +148,12 @@ class Executor(nn.Module):
         return logits, value, eli, state
 
     @torch.no_grad()
-    def act(self, obs: dict, state: torch.Tensor, starts, deterministic: bool = False):
-        """Rollout step: (dict(action, log_prob, value, eli), new state)."""
+    def act(self, obs: dict, state: torch.Tensor, starts, deterministic: bool = False) -> tuple[ExecutorAct, torch.Tensor]:
+        """Rollout step: (:class:`ExecutorAct`, new memory state)."""
         logits, value, eli, state = self(obs, state, starts)
         dist = Categorical(logits=logits)
         action = logits.argmax(-1) if deterministic else dist.sample()
-        return {"action": action, "log_prob": dist.log_prob(action), "value": value, "eli": eli}, state
+        return ExecutorAct(action=action, log_prob=dist.log_prob(action), value=value, eli=eli), state
 
     def evaluate_sequences(self, obs_seq: dict, actions: torch.Tensor, starts: torch.Tensor,
                            initial_state: torch.Tensor):

@@ -4,6 +4,7 @@ which the flat policy with the map shares)."""
 from __future__ import annotations
 
 import math
+from typing import TypedDict
 
 import numpy as np
 import torch
@@ -11,7 +12,7 @@ from torch import nn
 from torch.distributions import Categorical, Normal
 
 from plex_ma.envs.rules import ELI_DIM
-from plex_ma.networks.common import as_tensor, _conv_out_dim, layer_init, wrap_angle
+from plex_ma.networks.common import _conv_out_dim, as_tensor, layer_init, wrap_angle
 from plex_ma.networks.value_iteration import ValueIteration
 
 # float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
@@ -24,6 +25,15 @@ STOP_PRIOR_SLOPE = 200.0  # stop logit - continue logit per metre nearer the goa
 SUBGOAL_MARGIN = 0.05  # m: sub-goals lie at least this far beyond the executor's sub-goal radius
 OFFSET_FULL_DISTANCE = 1.0  # m: from here out the sub-goal heads' offsets count in full ...
 OFFSET_ZERO_DISTANCE = 0.2  # m: ... and from here in not at all (the sub-goal is the goal), linear between
+
+
+class PlannerAct(TypedDict):
+    """A planner decision per env, as :meth:`Planner.act` returns it."""
+    stop: torch.Tensor  # (B,) long: 1 ends the episode
+    raw_subgoal: torch.Tensor  # (B, 2) the Gaussian sample (rho, theta): what PPO stores and scores
+    subgoal: torch.Tensor  # (B, 2) the sample mapped into the action box: what the env gets
+    log_prob: torch.Tensor  # (B,)
+    value: torch.Tensor  # (B,)
 
 
 def planner_goal_features(goal: torch.Tensor) -> torch.Tensor:
@@ -195,22 +205,21 @@ class Planner(MapEncoder):
         return torch.stack([rho, theta], dim=-1)
 
     @torch.no_grad()
-    def act(self, obs: dict, deterministic: bool = False) -> dict:
-        """One decision per env: stop (B,) long, subgoal (B, 2) raw sample (store this),
-        subgoal_env (B, 2) mapped into the action box (send this), log_prob (B,), value (B,)."""
+    def act(self, obs: dict, deterministic: bool = False) -> PlannerAct:
+        """One decision per env (:class:`PlannerAct`)."""
         stop_d, sub_d, value = self(obs)
         if deterministic:
             stop, subgoal = stop_d.probs.argmax(-1), sub_d.mean
         else:
             stop, subgoal = stop_d.sample(), sub_d.sample()
         log_prob, _ = self._log_prob_entropy(stop_d, sub_d, stop, subgoal)
-        return {"stop": stop, "subgoal": subgoal, "subgoal_env": self.subgoal_to_env(subgoal),
-                "log_prob": log_prob, "value": value}
+        return PlannerAct(stop=stop, raw_subgoal=subgoal, subgoal=self.subgoal_to_env(subgoal),
+                          log_prob=log_prob, value=value)
 
-    def evaluate_actions(self, obs: dict, stop: torch.Tensor, subgoal: torch.Tensor):
+    def evaluate_actions(self, obs: dict, stop: torch.Tensor, raw_subgoal: torch.Tensor):
         """(log_prob, entropy, value), each (B,), for stored actions (raw sub-goal samples)."""
         stop_d, sub_d, value = self(obs)
-        log_prob, entropy = self._log_prob_entropy(stop_d, sub_d, stop.long(), subgoal)
+        log_prob, entropy = self._log_prob_entropy(stop_d, sub_d, stop.long(), raw_subgoal)
         return log_prob, entropy, value
 
     def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
