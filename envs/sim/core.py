@@ -149,7 +149,7 @@ class BatchedSim:
         if not math.isfinite(d):
             raise ValueError(f"episode {episode.episode_id} in {episode.scene_id}: goal unreachable from start")
         self.distance_to_goal[i] = d
-        self._straight(self.goal, np.array([i]), self.distance_to_goal)
+        self.shorten_to_straight_line(self.goal, np.array([i]), self.distance_to_goal)
         if self.use_egomap:
             self.amap[i] = 0
             self.amap_origin[i] = start - self.amap_size * self.amap_cell / 2
@@ -206,14 +206,17 @@ class BatchedSim:
         d = np.empty(self.n)
         K.field_lookup_batch(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.fields, self.pos, d)
         self.distance_to_goal[active] = d[active]
-        self._straight(self.goal, np.flatnonzero(active), self.distance_to_goal)
+        self.shorten_to_straight_line(self.goal, np.flatnonzero(active), self.distance_to_goal)
 
-    def _straight(self, targets: np.ndarray, rows: np.ndarray, dist: np.ndarray) -> None:
-        """Lower ``dist[rows]`` (grid geodesics to ``targets``) to the straight-line distance
-        where the agent could walk straight there: the spec's geodesic is the shortest path
-        through free space, which the grid overestimates (``kernels.straight_shortcut``)."""
+    def shorten_to_straight_line(self, targets: np.ndarray, rows: np.ndarray, dist: np.ndarray,
+                                 origins: np.ndarray | None = None) -> None:
+        """Lower ``dist[rows]`` (grid geodesics from ``origins``, default the agents'
+        positions, to ``targets``) to the straight-line distance where an agent could walk
+        straight there: the spec's geodesic is the shortest path through free space, which
+        the grid overestimates (``kernels.straight_shortcut``, the one test of this rule)."""
         b = self.bank
-        K.straight_shortcut(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos,
+        origins = self.pos if origins is None else np.asarray(origins, np.float64).reshape(self.n, 2)
+        K.straight_shortcut(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, origins,
                             np.asarray(targets, np.float64).reshape(self.n, 2), np.asarray(rows, np.int64), dist)
 
     # ---------------------------------------------------------------- queries
@@ -248,7 +251,7 @@ class BatchedSim:
         self.bank.corners.distances(self.scene_idx, self.pos, np.asarray(targets, np.float64).reshape(self.n, 2),
                                     rows, out)
         out[out >= K.INF] = np.inf
-        self._straight(targets, rows, out)
+        self.shorten_to_straight_line(targets, rows, out)
         return out
 
     def prepare_geodesics(self, scenes=None) -> None:
@@ -260,14 +263,12 @@ class BatchedSim:
     def geodesic(self, i: int, a: np.ndarray, b: np.ndarray) -> float:
         """Geodesic distance between two points in world ``i``'s scene (``inf`` if not
         connected): A* over the grid, or the straight line where an agent could walk it."""
-        s = int(self.scene_idx[i])
-        d = self.geo.distance(s, a, b)
-        e = math.hypot(b[0] - a[0], b[1] - a[1])
-        if e < d:
-            nav, off, h, w, ox, oy, cs = self.bank.grid_args(s)
-            if not K._try_move(nav, off, h, w, ox, oy, cs, float(a[0]), float(a[1]), b[0] - a[0], b[1] - a[1])[2]:
-                return e
-        return d
+        dist = np.full(self.n, np.inf)
+        dist[i] = self.geo.distance(int(self.scene_idx[i]), a, b)
+        origins, targets = np.zeros((self.n, 2)), np.zeros((self.n, 2))
+        origins[i], targets[i] = a, b
+        self.shorten_to_straight_line(targets, np.array([i]), dist, origins)
+        return float(dist[i])
 
     def snap_to_navigable(self, points: np.ndarray, rows: np.ndarray, max_radius: float = 8.0) -> np.ndarray:
         """For each world in ``rows``, the nearest point to ``points[r]`` that its agent can
