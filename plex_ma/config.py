@@ -169,10 +169,11 @@ def cpu_recipe(plex: bool) -> dict:
     return dict(total_steps=2_048_000, anneal_lr=True, torch_threads=1,
                 num_envs=32 if plex else 16, rollout_steps=32 if plex else 64,
                 resolution=48 if plex else 64, ppo_epochs=1 if plex else 4, n_pl=8, n_ex=18,
-                executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_subgoal_std=0.25, planner_warmup_steps=40_000,
+                executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_warmup_steps=40_000,
                 warmup_scenes="open-room", random_subgoal_distance=1.5, random_subgoal_angle=3.14,
                 executor_stop_penalty=-0.5, subgoal_radius=0.2, executor_stop_prior=0.15, executor_heading_prior=3.0,
-                executor_collision_reward=-0.05, planner_value_iteration=True)
+                executor_collision_reward=-0.05, planner_value_iteration=True,
+                **({"planner_subgoal_std": 0.25} if plex else {}))
 
 
 def paper_recipe(plex: bool) -> dict:
