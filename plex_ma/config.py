@@ -173,7 +173,7 @@ def cpu_recipe(plex: bool) -> dict:
                 warmup_scenes="open-room", random_subgoal_distance=1.5, random_subgoal_angle=3.14,
                 executor_stop_penalty=-0.5, subgoal_radius=0.2, executor_stop_prior=0.15, executor_heading_prior=3.0,
                 executor_collision_reward=-0.05, planner_value_iteration=True,
-                **({"planner_subgoal_std": 0.25} if plex else {}))
+                planner_subgoal_std=0.25 if plex else TrainConfig.planner_subgoal_std)
 
 
 def paper_recipe(plex: bool) -> dict:
