@@ -92,8 +92,6 @@ class TrainConfig:
     """value loss weight"""
     max_grad_norm: float = 0.5
     """gradient clipping norm"""
-    executor_goal_skip: bool = True
-    """the executor's (and flat policy's) heads also read the encoded goal vector beside the memory's output (--no-executor-goal-skip: heads on the 128-d output alone)"""
     executor_stop_prior: float | None = None
     """PLEX only: start the executor's STOP at p = 0.5 this many metres from its sub-goal, rising nearer and vanishing farther (a skip from the sub-goal distance; None: no skip)"""
     executor_heading_prior: float | None = None
@@ -230,8 +228,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
          "must be in (0, 2] metres")
     need(cfg.executor_heading_prior is None or 0 < cfg.executor_heading_prior <= 20, "executor_heading_prior",
          "must be in (0, 20] logits")
-    need(not (cfg.executor_heading_prior is not None and not cfg.executor_goal_skip), "executor_heading_prior",
-         "needs --executor-goal-skip")
     need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
     need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
     need(0.5 < cfg.random_subgoal_distance <= cfg.env.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")

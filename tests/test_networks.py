@@ -277,5 +277,3 @@ def test_executor_heading_prior_turns_towards_the_subgoal():
     p = torch.softmax(ex(obs, ex.initial_state(5), torch.ones(5, dtype=torch.bool))[0], -1)
     assert p[:, 1:].argmax(-1)[:4].tolist() == [0, 1, 2, 1]  # forward, left, right; behind: left (sin 3 > 0)
     assert p[0, 1] > 0.85 and p[1, 2] > 0.85 and p[2, 3] > 0.85 and p[4, 0] > 0.85
-    with pytest.raises(ValueError, match="goal_skip"):
-        Executor(resolution=40, gru_hidden=16, goal_skip=False, heading_prior=3.0)

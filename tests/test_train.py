@@ -14,6 +14,7 @@ from plex_ma.config import PRESETS, TrainConfig, from_dict, parse, preset_defaul
 from plex_ma.evaluate import main as evaluate_main
 from plex_ma.trainers.checkpoint import CheckpointError, atomic_save, find_resumable, load_checkpoint, save_checkpoint
 from plex_ma.trainers import make_trainer
+from plex_ma.trainers.base import saved_config
 from plex_ma.trainers.plex import PHASES, PlexTrainer
 
 
@@ -337,15 +338,19 @@ def test_env_settings_are_train_flags_that_reach_the_env(tmp_path):
 
 def test_saved_config_with_retired_settings_loads():
     """A checkpoint's config from older code, with settings since retired (the teacher and the
-    planner's imitation, the planner's own PPO settings), loads without them; their flags no
-    longer exist."""
+    planner's imitation, the planner's own PPO settings, the executor's goal skip at the value
+    every network now has), loads without them; their flags no longer exist."""
     cfg = preset_defaults("cpu")
     retired = {"teacher": "map-los", "teacher_subgoal_steps": 260_000, "planner_imitation_steps": 724_000,
                "imitation_minibatches": 8, "planner_entropy_coef": None, "planner_target_kl": None,
-               "planner_minibatches": 2}
+               "planner_minibatches": 2, "executor_goal_skip": True}
     assert from_dict(dataclasses.asdict(cfg) | retired) == cfg
+    assert saved_config({"config": dataclasses.asdict(cfg) | retired}) == cfg
+    # a network these settings no longer build: one clear error that names the setting
+    with pytest.raises(CheckpointError, match="executor_goal_skip"):
+        saved_config({"config": dataclasses.asdict(cfg) | {"executor_goal_skip": False}})
     for flag in ("--teacher-subgoal-steps", "--planner-imitation-steps", "--planner-minibatches",
-                 "--planner-entropy-coef", "--planner-target-kl"):
+                 "--planner-entropy-coef", "--planner-target-kl", "--executor-goal-skip"):
         with pytest.raises(SystemExit):
             parse(["--preset", "smoke", flag, "100"])
 

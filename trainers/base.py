@@ -32,11 +32,14 @@ from .ppo import PPOConfig
 
 CHECKPOINT_FORMAT = 1
 # Config fields added after checkpoints were first written, with the value older ones had.
-LEGACY_CONFIG = {"executor_goal_skip": False, "planner_value_iteration": False}
+LEGACY_CONFIG = {"planner_value_iteration": False}
+# Retired config fields and the one value the current networks build: a checkpoint saved
+# with another names the field in its error
+RETIRED_CONFIG = {"executor_goal_skip": True}
 
 
 # The settings that shape the networks: a checkpoint loads only into a run with the same.
-ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_goal_skip")
+ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden")
 PLEX_ARCH_KEYS = ("planner_value_iteration",)  # ... and for the methods that read the ego map (the planner's)
 NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
 
@@ -44,7 +47,12 @@ NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
 def saved_config(state: dict) -> TrainConfig:
     """A checkpoint's config, with the fields older checkpoints lack filled in."""
     try:
-        return from_dict({**LEGACY_CONFIG, **state["config"]})
+        config = dict(state["config"])
+        for name, value in RETIRED_CONFIG.items():
+            if config.pop(name, value) != value:
+                raise CheckpointError(f"checkpoint config: it was trained with {name} other than {value!r}, "
+                                      "which this version no longer builds; retrain it")
+        return from_dict({**LEGACY_CONFIG, **config})
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint config is not valid: {e}") from None
 
@@ -71,10 +79,10 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
                           value_iteration=cfg.planner_value_iteration)
         return {"planner": planner,
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
-                                     gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip,
+                                     gru_hidden=cfg.executor_hidden,
                                      stop_prior=cfg.executor_stop_prior, heading_prior=cfg.executor_heading_prior)}
     flat = dict(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
-                gru_hidden=cfg.executor_hidden, goal_skip=cfg.executor_goal_skip)
+                gru_hidden=cfg.executor_hidden)
     if cfg.method == "ppo-gru-map":
         return {"policy": FlatMapPolicy(value_iteration=cfg.planner_value_iteration, **flat)}
     return {"policy": FlatPolicy(**flat)}

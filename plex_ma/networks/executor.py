@@ -71,15 +71,14 @@ class Executor(nn.Module):
     goal_key = "subgoal"
 
     def __init__(self, memory: str = "gru", resolution: int = 128, eli_dim: int = ELI_DIM,
-                 smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512, goal_skip: bool = True,
+                 smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512,
                  stop_prior: float | None = None, extra_inputs: int = 0, heading_prior: float | None = None):
         """``extra_inputs``: features a subclass's ``_inputs`` adds to the memory's input
         beside the image's and the goal's (:class:`FlatMapPolicy`'s map features).
-        ``heading_prior`` (logits, or None; needs ``goal_skip``): the actor's goal inputs start
+        ``heading_prior`` (logits, or None): the actor's goal inputs start
         at MOVE_FORWARD += k cos(direction), TURN_LEFT += k sin, TURN_RIGHT -= k sin, so an
         untrained policy turns towards its goal and moves when it faces it."""
         super().__init__()
-        self.goal_skip = goal_skip
         if memory not in ("gru", "smt"):
             raise ValueError(f"memory must be 'gru' or 'smt', got {memory!r}")
         self.memory_kind, self.resolution, self.eli_dim = memory, resolution, eli_dim
@@ -90,15 +89,13 @@ class Executor(nn.Module):
         else:
             self.memory = SMTMemory(emb + 3 + extra_inputs, 128, smt_heads, smt_memory)
         self.eli_head = layer_init(nn.Linear(self.memory.out_dim, eli_dim))
-        # goal_skip: the heads also read the encoded goal vector, so that "turn towards the
+        # the heads also read the encoded goal vector, so that "turn towards the
         # goal" is a simple function of their input from the first update on (through the
         # memory alone, 3 goal inputs beside 512 image features are learnt too slowly).
-        head_in = eli_dim + (3 if goal_skip else 0)
+        head_in = eli_dim + 3
         self.actor = layer_init(nn.Linear(head_in, NUM_ACTIONS), std=0.01)
         self.critic = layer_init(nn.Linear(head_in, 1), std=1.0)
         if heading_prior is not None:
-            if not goal_skip:
-                raise ValueError("heading_prior needs goal_skip (the actor's goal inputs)")
             with torch.no_grad():  # goal inputs: (distance, cos, sin) after the eli_dim ELI features
                 self.actor.weight[MOVE_FORWARD, eli_dim + 1] += heading_prior
                 self.actor.weight[TURN_LEFT, eli_dim + 2] += heading_prior
@@ -133,7 +130,7 @@ class Executor(nn.Module):
 
     def _heads(self, out: torch.Tensor, goal: torch.Tensor):
         eli = torch.tanh(self.eli_head(out))
-        h = torch.cat([eli, goal], dim=-1) if self.goal_skip else eli
+        h = torch.cat([eli, goal], dim=-1)
         logits = self.actor(h)
         if self.stop_skip is not None:
             logits = logits + self.stop_skip(goal[..., :1].clamp(max=2.0))
