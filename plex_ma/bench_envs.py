@@ -167,7 +167,7 @@ def bench_geodesic(queries: int, seed: int, scenes: str = "procgen", num_scenes:
     ref = np.full(queries, np.inf)
     ref[:k] = [geo.distance(int(sim.scene_idx[i]), sim.pos[i], targets[i]) for i in range(k)]
     t_astar = time.perf_counter() - t0
-    sim.shorten_to_straight_line(targets, rows[:k], ref)  # the straight line where the agent could walk it, as distance_to
+    sim.shorten_to_straight_line(targets, rows[:k], ref)  # as distance_to does
     ref = ref[:k]
     euclid = np.hypot(*(sim.pos - targets).T)
     return {"benchmark": "geodesic", "queries": queries, "corner_graph_us_per_query": best / queries * 1e6,

@@ -13,8 +13,8 @@ import time
 import warnings
 from collections import defaultdict, deque
 from collections.abc import Callable
-from typing import ClassVar
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import torch

@@ -93,11 +93,10 @@ class BatchedSim:
                  pose_noise: tuple[float, float] = (0.0, 0.0), egomap: bool = True, seed: int = 0):
         if not isinstance(num_worlds, (int, np.integer)) or num_worlds < 1:
             raise ValueError(f"num_worlds must be a positive integer, got {num_worlds!r}")
-        check_resolution(resolution)
         pn = check_pose_noise(pose_noise)
         self.bank = bank
         self.n = int(num_worlds)
-        self.resolution = int(resolution)
+        self.resolution = check_resolution(resolution)
         self.pose_noise = pn
         self.use_egomap = bool(egomap)
         self.rng = np.random.default_rng(seed)
@@ -208,15 +207,13 @@ class BatchedSim:
         self.distance_to_goal[active] = d[active]
         self.shorten_to_straight_line(self.goal, np.flatnonzero(active), self.distance_to_goal)
 
-    def shorten_to_straight_line(self, targets: np.ndarray, rows: np.ndarray, dist: np.ndarray,
-                                 origins: np.ndarray | None = None) -> None:
-        """Lower ``dist[rows]`` (grid geodesics from ``origins``, default the agents'
-        positions, to ``targets``) to the straight-line distance where an agent could walk
-        straight there: the spec's geodesic is the shortest path through free space, which
-        the grid overestimates (``kernels.straight_shortcut``, the one test of this rule)."""
+    def shorten_to_straight_line(self, targets: np.ndarray, rows: np.ndarray, dist: np.ndarray) -> None:
+        """Lower ``dist[rows]`` (grid geodesics to ``targets``) to the straight-line distance
+        where the agent could walk straight there: the spec's geodesic is the shortest path
+        through free space, which the grid overestimates (``kernels.straight_shortcut``, the
+        one test of this rule)."""
         b = self.bank
-        origins = self.pos if origins is None else np.asarray(origins, np.float64).reshape(self.n, 2)
-        K.straight_shortcut(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, origins,
+        K.straight_shortcut(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.pos,
                             np.asarray(targets, np.float64).reshape(self.n, 2), np.asarray(rows, np.int64), dist)
 
     # ---------------------------------------------------------------- queries
@@ -263,12 +260,13 @@ class BatchedSim:
     def geodesic(self, i: int, a: np.ndarray, b: np.ndarray) -> float:
         """Geodesic distance between two points in world ``i``'s scene (``inf`` if not
         connected): A* over the grid, or the straight line where an agent could walk it."""
-        dist = np.full(self.n, np.inf)
-        dist[i] = self.geo.distance(int(self.scene_idx[i]), a, b)
-        origins, targets = np.zeros((self.n, 2)), np.zeros((self.n, 2))
-        origins[i], targets[i] = a, b
-        self.shorten_to_straight_line(targets, np.array([i]), dist, origins)
-        return float(dist[i])
+        bank = self.bank
+        dist = np.array([self.geo.distance(int(self.scene_idx[i]), a, b)])
+        # the straight-line rule of shorten_to_straight_line, for this one pair of points
+        K.straight_shortcut(bank.nav, bank.off, bank.h, bank.w, bank.ox, bank.oy, bank.cell_size,
+                            self.scene_idx[i:i + 1], np.asarray(a, np.float64).reshape(1, 2),
+                            np.asarray(b, np.float64).reshape(1, 2), np.zeros(1, np.int64), dist)
+        return float(dist[0])
 
     def snap_to_navigable(self, points: np.ndarray, rows: np.ndarray, max_radius: float = 8.0) -> np.ndarray:
         """For each world in ``rows``, the nearest point to ``points[r]`` that its agent can
