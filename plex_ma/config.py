@@ -3,8 +3,10 @@
 ``TrainConfig`` holds the trainer's settings and nests the environment's own config
 (:class:`plex_ma.envs.rules.PlexConfig`) as ``env``: every env setting (image size, episode
 length, scenes, N_EX, rho_max, the ELI, reward weights, pose noise) is a flag of the same
-name, defined and validated once, by the env. ``--preset`` picks a set of defaults
-(``smoke``, ``cpu``, ``paper``); any flag given on the command line overrides the preset's
+name, defined and validated once, by the env. ``TrainConfig()`` is the recommended recipe,
+reward-only PLEX-GRU as it learns best per CPU hour here (the ``cpu`` preset; why each value:
+docs/results.md). ``--preset`` names a recipe (``smoke``, ``cpu``, ``paper``) as the fields
+where it departs from those defaults; any flag on the command line overrides the preset's
 value. :func:`replace` changes fields of either level by name.
 """
 
@@ -20,8 +22,9 @@ import tyro
 
 from plex_ma.envs.rules import PlexConfig, make_config
 
-# Where the trainer's env defaults differ from the env's own.
-TRAIN_ENV = {"resolution": 64}
+# Where the trainer's env defaults differ from the env's own (the env's are the paper's, docs/spec.md).
+TRAIN_ENV = {"resolution": 48, "n_ex": 18, "subgoal_radius": 0.2, "executor_stop_penalty": -0.5,
+             "executor_collision_reward": -0.05}
 Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt", "ppo-gru-map"]
 Preset = Literal["smoke", "cpu", "paper"]
 # --device of the CLIs that load networks (evaluate, record, bench train; train has the field below)
@@ -38,21 +41,21 @@ class TrainConfig:
     """PLEX only: learn the planner, or train the executor alone under random sub-goals (distance uniform in [0.5, random_subgoal_distance], direction within +-random_subgoal_angle, never stopping) or under the shortest-path oracle planner (ground truth)"""
     executor: Literal["learn", "oracle"] = "learn"
     """PLEX only: learn the executor, or train the planner alone over the shortest-path oracle executor (ground truth)"""
-    random_subgoal_distance: float = 2.0
+    random_subgoal_distance: float = 1.5
     """largest distance (m) of the random planner's sub-goals (at most rho_max)"""
-    random_subgoal_angle: float = 1.0
+    random_subgoal_angle: float = 3.14
     """largest |direction| (rad) of the random planner's sub-goals"""
-    planner_warmup_steps: int = 0
+    planner_warmup_steps: int = 40_000
     """PLEX only: environment steps during which random sub-goals stand in for the planner (not trained) while the executor learns"""
-    warmup_scenes: str | None = None
+    warmup_scenes: str | None = "open-room"
     """PLEX only: scene source during the planner warm-up (e.g. open-room, where random sub-goals are reachable); None: --scenes"""
     warmup_max_steps: int = 40
     """PLEX only: agent actions per episode on --warmup-scenes (short episodes keep the agent away from walls, where snapped sub-goals are trivially close)"""
     preset: Preset = "cpu"
-    """defaults to start from: smoke (< 2 min), cpu (best per CPU hour here), paper (256 px, paper settings)"""
-    total_steps: int = 2_000_000
+    """the recipe: cpu (these defaults for PLEX: best per CPU hour here), smoke (the cpu recipe in < 2 min), paper (the paper's settings)"""
+    total_steps: int = 2_048_000
     """environment steps (agent actions) to train for"""
-    num_envs: int = 16
+    num_envs: int = 32
     """worlds simulated in parallel"""
     seed: int = 0
     """seeds the worlds, the networks and the sampling"""
@@ -60,17 +63,17 @@ class TrainConfig:
     """where metrics, TensorBoard logs and checkpoints go; an existing checkpoint here is resumed"""
     checkpoint: str | None = None
     """start the networks from this checkpoint's weights (a file or pretrained:NAME) and fine-tune them with fresh optimisers from step 0; a checkpoint in --run-dir is resumed instead"""
-    lr: float = 2.5e-4
+    lr: float = 1e-3
     """Adam learning rate (both agents)"""
-    planner_lr: float | None = None
+    planner_lr: float | None = 2.5e-4
     """PLEX only: the planner's Adam learning rate (None: --lr)"""
-    planner_subgoal_std: float = 0.5
+    planner_subgoal_std: float = 0.25
     """PLEX only: the starting standard deviation of the planner's sampled sub-goal (rho in m, theta in rad)"""
-    anneal_lr: bool = False
+    anneal_lr: bool = True
     """decay every learning rate linearly to zero at --total-steps (CleanRL's anneal_lr)"""
-    rollout_steps: int = 64
+    rollout_steps: int = 32
     """executor (or flat agent) steps per world between its PPO updates"""
-    n_pl: int = 128
+    n_pl: int = 8
     """planner decisions per world per planner update (N_PL)"""
     gamma_ex: float = 0.9
     """executor discount per executor step"""
@@ -80,7 +83,7 @@ class TrainConfig:
     """flat baselines' discount per step"""
     gae_lambda: float = 0.95
     """GAE lambda"""
-    ppo_epochs: int = 4
+    ppo_epochs: int = 1
     """PPO epochs per update"""
     num_minibatches: int = 2
     """minibatches per PPO epoch (the executor's and flat agent's split the worlds, the planner's its decisions)"""
@@ -92,13 +95,13 @@ class TrainConfig:
     """value loss weight"""
     max_grad_norm: float = 0.5
     """gradient clipping norm"""
-    executor_stop_prior: float | None = None
+    executor_stop_prior: float | None = 0.15
     """PLEX only: start the executor's STOP at p = 0.5 this many metres from its sub-goal, rising nearer and vanishing farther (a skip from the sub-goal distance; None: no skip)"""
-    executor_heading_prior: float | None = None
+    executor_heading_prior: float | None = 3.0
     """PLEX only: start the executor's actor turning towards its sub-goal and moving when it faces it, with this many logits (None: no prior)"""
-    planner_value_iteration: bool = False
+    planner_value_iteration: bool = True
     """PLEX only: the planner also reads a value-iteration module over its ego map (networks.ValueIteration; the paper's planner has none)"""
-    executor_hidden: int = 512
+    executor_hidden: int = 128
     """GRU hidden size of the executor and the flat GRU policy (512 in the paper)"""
     smt_memory: int = 128
     """memory entries kept by the scene-memory transformer (flat PPO-SMT spans the episode up to this cap)"""
@@ -110,7 +113,7 @@ class TrainConfig:
     """updates between metric lines"""
     record_interval: int = 50
     """updates between rerun recordings of an episode into the run dir (0: never)"""
-    torch_threads: int = 0
+    torch_threads: int = 1
     """torch intra-op threads (0: torch's default)"""
     parallel_updates: bool = True
     """PLEX only: the planner's PPO update runs on a second thread beside the executor's (single-process runs; under torchrun they take turns)"""
@@ -154,33 +157,31 @@ def from_dict(d: dict) -> TrainConfig:
 
 
 def smoke_recipe(plex: bool) -> dict:
-    """Finishes in well under two minutes on two cores and still writes a checkpoint."""
-    return dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, n_pl=8, num_scenes=4,
-                checkpoint_interval=5, keep_checkpoints=1, ppo_epochs=2)
+    """The recommended recipe shrunk to finish in well under two minutes on two cores (no
+    warm-up, so both agents learn; it still writes a checkpoint)."""
+    return dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, num_scenes=4, planner_warmup_steps=0,
+                ppo_epochs=2, checkpoint_interval=5, keep_checkpoints=1)
 
 
 def cpu_recipe(plex: bool) -> dict:
-    """Reward-only PLEX as it learns best per CPU hour here: both agents by PPO on the reward
-    alone, after a 40k-step executor warm-up under random sub-goals in an open room; the flat
-    baselines take the same values but keep 16 worlds of 64 px, 64-step rollouts and 4 PPO
-    epochs. Each departure from the paper and the measurement behind it: docs/results.md."""
-    return dict(total_steps=2_048_000, anneal_lr=True, torch_threads=1,
-                num_envs=32 if plex else 16, rollout_steps=32 if plex else 64,
-                resolution=48 if plex else 64, ppo_epochs=1 if plex else 4, n_pl=8, n_ex=18,
-                executor_hidden=128, lr=1e-3, planner_lr=2.5e-4, planner_warmup_steps=40_000,
-                warmup_scenes="open-room", random_subgoal_distance=1.5, random_subgoal_angle=3.14,
-                executor_stop_penalty=-0.5, subgoal_radius=0.2, executor_stop_prior=0.15, executor_heading_prior=3.0,
-                executor_collision_reward=-0.05, planner_value_iteration=True,
-                planner_subgoal_std=0.25 if plex else TrainConfig.planner_subgoal_std)
+    """The recommended recipe, TrainConfig's defaults: reward-only PLEX, a 40k-step executor
+    warm-up under random sub-goals in an open room, then both agents by PPO on the reward
+    alone. The flat baselines keep 16 worlds of 64 px, 64-step rollouts and 4 PPO epochs."""
+    return {} if plex else dict(num_envs=16, rollout_steps=64, resolution=64, ppo_epochs=4)
 
 
 def paper_recipe(plex: bool) -> dict:
-    """The paper's settings: 256 px images, N_PL = 128, 30M steps."""
-    return dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128)
+    """The paper's settings: 256 px images, N_EX = 10, N_PL = 128, 30M steps, a 512-unit
+    executor GRU at one constant learning rate, the env's own rewards, no warm-up and no
+    value-iteration module or priors."""
+    env = {f.name: f.default for f in dataclasses.fields(PlexConfig) if f.name in TRAIN_ENV}
+    return env | dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128, lr=2.5e-4,
+                      planner_lr=None, anneal_lr=False, ppo_epochs=4, executor_hidden=512, planner_warmup_steps=0,
+                      warmup_scenes=None, executor_stop_prior=None, executor_heading_prior=None,
+                      planner_value_iteration=False, planner_subgoal_std=0.5, torch_threads=0)
 
 
-# Each preset's complete recipe for a method (plex: a PLEX method), as the values that
-# differ from TrainConfig's defaults.
+# Each preset's recipe for a method (plex: a PLEX method): the values that differ from TrainConfig's defaults.
 PRESETS = {"smoke": smoke_recipe, "cpu": cpu_recipe, "paper": paper_recipe}
 
 

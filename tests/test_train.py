@@ -292,21 +292,23 @@ def test_cli_help_and_bad_config(capsys):
     assert parse(["--preset", "smoke", "--planner-lr", "1e-4"]).planner_lr == 1e-4
 
 
-def test_cpu_preset_plex_settings_apply_to_plex_only():
-    """The cpu preset's recipe for PLEX (config.cpu_recipe(plex=True)) reaches plex-gru and
-    plex-smt, the flat baselines get its flat recipe; a flag on the command line still wins."""
+def test_defaults_are_the_cpu_recipe_and_flat_methods_get_theirs():
+    """TrainConfig() is the recommended recipe: the cpu preset for PLEX adds nothing to it; the
+    flat baselines get the cpu preset's flat departures; the paper preset restores the env's
+    own (the paper's) settings; a flag on the command line still wins."""
     plex, flat = PRESETS["cpu"](True), PRESETS["cpu"](False)
-    plex_only = {k: v for k, v in plex.items() if flat[k] != v}
-    assert {"num_envs", "resolution", "ppo_epochs"} <= plex_only.keys() and plex.keys() == flat.keys()
+    assert plex == {} and {"num_envs", "resolution", "ppo_epochs", "rollout_steps"} <= flat.keys()
     for method in ("plex-gru", "plex-smt"):
         cfg = preset_defaults("cpu", method)
-        assert all(setting(cfg, k) == v for k, v in plex.items()), method
+        assert replace(cfg, preset="cpu", method="plex-gru", run_dir=TrainConfig().run_dir) == TrainConfig(), method
     for method in ("ppo-gru", "ppo-smt", "ppo-gru-map"):
         cfg = preset_defaults("cpu", method)
-        assert all(setting(cfg, k) == v for k, v in flat.items()), method
-        assert all(setting(cfg, k) != v for k, v in plex_only.items()), method
+        assert all(setting(cfg, k) == v and v != setting(TrainConfig(), k) for k, v in flat.items()), method
+    paper = preset_defaults("paper")
+    assert (paper.env.n_ex, paper.env.subgoal_radius, paper.env.executor_stop_penalty) == (10, 0.5, 0.0)
+    assert (paper.env.resolution, paper.n_pl, paper.executor_hidden, paper.planner_value_iteration) == (256, 128, 512, False)
     cfg = parse(["--preset", "cpu", "--resolution", "64", "--ppo-epochs", "4"])
-    assert cfg.env.resolution == 64 and cfg.ppo_epochs == 4 and cfg.num_envs == plex["num_envs"]
+    assert cfg.env.resolution == 64 and cfg.ppo_epochs == 4 and cfg.num_envs == TrainConfig().num_envs
     assert parse(["--preset", "cpu", "--method", "ppo-gru"]).num_envs == flat["num_envs"]
 
 
@@ -389,6 +391,8 @@ def test_executor_alone_learns_to_reach_subgoals(tmp_path):
     cfg = replace(
         preset_defaults("smoke"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1,
         planner="random", random_subgoal_distance=1.5, random_subgoal_angle=0.5, resolution=64, executor_hidden=128, lr=1e-3,
+        executor_stop_prior=None, executor_heading_prior=None, anneal_lr=False, n_ex=10, subgoal_radius=0.5,
+        executor_stop_penalty=0.0, executor_collision_reward=0.0,
         max_steps=40, total_steps=16_000, num_envs=8, rollout_steps=32, ppo_epochs=4, num_minibatches=2,
         progress=False, torch_threads=1, checkpoint_interval=1000)
     t = make_trainer(validate(cfg))
@@ -476,7 +480,7 @@ def test_training_counts_episodes_ended_by_planner_stop(tmp_path):
     training statistics as well as those cut by max_steps."""
     from plex_ma.trainers.driver import RandomPlanner
 
-    cfg = tiny(tmp_path, planner="random", max_steps=10_000, total_steps=64)
+    cfg = tiny(tmp_path, planner="random", max_steps=10_000, total_steps=64, n_ex=2)
     t = make_trainer(cfg)
     t.driver.planner = RandomPlanner(2.0, stop_prob=0.5, rng=np.random.default_rng(0))
     t.train()
