@@ -178,12 +178,15 @@ def test_table1_report_aggregates_every_seed(tmp_path):
     assert res["plex-gru"]["test"]["r2v"]["all"]["reward"]["mean"] == pytest.approx(1.0)
     assert res["ppo-smt"]["seeds"] == [0]
     assert res["ppo-smt"]["test"]["procgen"]["all"]["reward"]["values"] == [0.5]
-    # steps to success 0.5: seed 1 of plex-gru has none (0.4), the fake runs log phase-less rows
-    assert res["plex-gru"]["steps_to_success"]["per_seed"] == {"0": None, "1": None}
+    # steps to success 0.5 and 0.8: neither seed reaches them (0.2, 0.4)
+    assert res["plex-gru"]["steps_to_success"] == {"0.5": {"0": None, "1": None}, "0.8": {"0": None, "1": None}}
+    assert res["plex-gru"]["per_seed"]["1"] == {"success": 0.4, "spl": 0.2, "collisions": 3.0, "success_close": 0.4,
+                                                "success_far": 0.4, "r2v_success": 0.4, "r2v_spl": 0.2}
     md = (tmp_path / "table1.md").read_text()
-    assert "| PLEX GRU | 2 | 2.000 ± 1.414 | 0.300 ± 0.141 | 0.200 / 0.400 |" in md
-    assert "| PPO SMT | 1 | 0.500 | 0.100 | 0.100 |" in md  # one seed: no spread
-    assert "| PPO GRU+map | 1 | 2.000 | 0.300 | 0.300 |" in md
+    assert "| PLEX GRU | 2 | 2.000 ± 1.414 | 0.300 ± 0.141 | 0.150 ± 0.071 | 3.0 ± 0.0 |" in md
+    assert "| PPO SMT | 1 | 0.500 | 0.100 | 0.050 | 3.0 |" in md  # one seed: no spread
+    assert "| PPO GRU+map | 1 | 2.000 | 0.300 | 0.150 |" in md
+    assert "| PLEX GRU | 1 | 0.400 | 0.200 | 3.0 | 0.400 / 0.400 | 0.400 | 0.200 | - | - |" in md  # every seed
     for png in ("fig4.png", "fig5b.png"):
         assert (tmp_path / png).stat().st_size > 1000
 

@@ -18,9 +18,9 @@ Outputs under ``--out`` (default ``results/table1/``):
 
 * ``table1.json``: per arm, every seed's test metrics and their mean and standard
   deviation (procgen test, close/far, r2v test), and the training steps each seed needed to
-  reach success ``--success-level`` (0.5; the paper's claim), plus the configuration and
-  provenance;
-* ``table1.md``: the same as a Markdown table;
+  reach each training success of ``--success-levels`` (0.5, the paper's claim, and 0.8),
+  plus the configuration and provenance;
+* ``table1.md``: the same as Markdown: one table of the means over seeds, one of every seed;
 * ``fig4.png``: training reward and success (the last 100 training episodes at each
   logged step) against environment steps, mean over seeds with the seeds' range shaded;
 * ``fig5a.png``: PLEX-GRU with and without the ELI (curves and test results);
@@ -74,21 +74,21 @@ ARMS: dict[str, Arm] = {a.name: a for a in [
     Arm("plex-gru-noeli", "PLEX GRU, no ELI", ("--method", "plex-gru", "--no-eli")),
     Arm("plex-gru-mix", "PLEX GRU, procgen+r2v", ("--method", "plex-gru", "--scenes", "procgen+r2v")),
 ]}
-DEFAULT_ARMS = ["plex-gru", "plex-smt", "ppo-gru", "ppo-smt", "plex-gru-noeli"]
+DEFAULT_ARMS = ["plex-gru", "plex-smt", "plex-gru-noeli", "ppo-gru", "ppo-smt", "ppo-gru-map"]
 METRICS = ("success", "spl", "reward", "distance_to_goal", "collisions")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--arms", nargs="+", default=DEFAULT_ARMS, choices=list(ARMS),
-                   help="which arms to run (default: the four methods and the no-ELI ablation)")
+                   help="which arms to run (default: the four methods, the no-ELI ablation and the map control)")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="training seeds (>= 3 for the table)")
     p.add_argument("--budget", type=int, default=100_000, help="environment steps per run (equal for every arm)")
     p.add_argument("--preset", default="cpu", choices=["smoke", "cpu", "paper"], help="train preset")
     p.add_argument("--eval-episodes", type=int, default=200, help="procgen test episodes per run")
     p.add_argument("--r2v-episodes", type=int, default=100, help="real-plan test episodes per run (0: skip)")
     p.add_argument("--jobs", type=int, default=1, help="runs trained at the same time")
-    p.add_argument("--success-level", type=float, default=0.5,
-                   help="report the training steps each run needs to reach this success (the paper's claim: 0.5)")
+    p.add_argument("--success-levels", type=float, nargs="+", default=[0.5, 0.8],
+                   help="report the training steps each run needs to reach these successes (the paper's claim: 0.5)")
     p.add_argument("--runs-dir", type=Path, default=None,
                    help="where runs and checkpoints go (default: runs/table1 at the repository root)")
     p.add_argument("--report-only", action="store_true", help="only rebuild the table and figures from the runs")
@@ -198,11 +198,20 @@ def collect(args, out: Path) -> dict:
                         if e.get("episodes", 0) > 0 and e.get(m) is not None:
                             vals.append(float(e[m]))
                     agg.setdefault(src, {}).setdefault(part, {})[m] = _summary(vals)
-        reach = {s: steps_to_success(_load_curve(out / "runs" / f"{name}-s{s}" / "metrics.jsonl.gz"),
-                                     args.success_level) for s in sorted(per_seed)}
+        curves = {s: _load_curve(out / "runs" / f"{name}-s{s}" / "metrics.jsonl.gz") for s in sorted(per_seed)}
+        reach = {str(level): {s: steps_to_success(c, level) for s, c in curves.items()} for level in args.success_levels}
         table[name] = {"label": ARMS[name].label, "seeds": sorted(per_seed), "test": agg,
-                       "steps_to_success": {"level": args.success_level, "per_seed": reach}}
+                       "per_seed": {s: _seed_row(ev) for s, ev in sorted(per_seed.items())},
+                       "steps_to_success": reach}
     return table
+
+
+def _seed_row(ev: dict) -> dict:
+    """One seed's figures for the per-seed table (None where an evaluation is missing)."""
+    p, r = ev["procgen"], ev["r2v"] or {}
+    return {"success": p.get("success"), "spl": p.get("spl"), "collisions": p.get("collisions"),
+            "success_close": p.get("close", {}).get("success"), "success_far": p.get("far", {}).get("success"),
+            "r2v_success": r.get("success"), "r2v_spl": r.get("spl")}
 
 
 def _fmt(s: dict, nd: int = 3) -> str:
@@ -214,24 +223,36 @@ def _fmt(s: dict, nd: int = 3) -> str:
 
 
 def write_markdown(table: dict, args, path: Path) -> None:
-    lines = [f"Budget {args.budget:,} environment steps per run, preset `{args.preset}`; mean ± std over "
-             f"seeds; greedy evaluation on {args.eval_episodes} procgen test episodes and "
-             f"{args.r2v_episodes} r2v test episodes. Steps to {args.success_level}: the first logged step "
-             f"at which the last 100 training episodes (sampled actions; for PLEX, with the learned planner "
-             f"acting) reach that success, per seed (-: never).", "",
-             "| method | seeds | reward | success | success per seed | SPL | reward, close | reward, far | "
-             "success, close | success, far | r2v reward | r2v success | "
-             f"steps to {args.success_level} per seed |",
-             "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+    levels = [str(v) for v in args.success_levels]
+    lines = [f"Budget {args.budget:,} environment steps per run, preset `{args.preset}`; greedy evaluation on "
+             f"{args.eval_episodes} procgen test episodes and {args.r2v_episodes} r2v test episodes. Steps to a "
+             f"success: the first logged step at which the last 100 training episodes (sampled actions; for "
+             f"PLEX, with the learned planner acting) reach it (-: never).", "",
+             "Mean ± std over seeds:", "",
+             "| method | seeds | reward | success | SPL | collisions | reward, close | reward, far | "
+             "success, close | success, far | r2v reward | r2v success | r2v SPL |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for t in table.values():
         p, r = t["test"]["procgen"], t["test"]["r2v"]
-        per_seed = " / ".join(f"{v:.3f}" for v in p["all"]["success"].get("values", [])) or "-"
-        reach = " / ".join("-" if v is None else f"{v:,}" for v in t["steps_to_success"]["per_seed"].values()) or "-"
         lines.append(f"| {t['label']} | {len(t['seeds'])} | {_fmt(p['all']['reward'])} | "
-                     f"{_fmt(p['all']['success'])} | {per_seed} | {_fmt(p['all']['spl'])} | "
+                     f"{_fmt(p['all']['success'])} | {_fmt(p['all']['spl'])} | {_fmt(p['all']['collisions'], 1)} | "
                      f"{_fmt(p['close']['reward'])} | {_fmt(p['far']['reward'])} | {_fmt(p['close']['success'])} | "
                      f"{_fmt(p['far']['success'])} | {_fmt(r['all']['reward'])} | {_fmt(r['all']['success'])} | "
-                     f"{reach} |")
+                     f"{_fmt(r['all']['spl'])} |")
+    lines += ["", "Every seed:", "",
+              "| method | seed | success | SPL | collisions | success, close / far | r2v success | r2v SPL | "
+              + " | ".join(f"steps to {v}" for v in levels) + " |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(levels)]
+
+    def num(v, nd=3):
+        return "-" if v is None else f"{v:.{nd}f}"
+
+    for t in table.values():
+        for s, row in t["per_seed"].items():
+            reach = ["-" if (v := t["steps_to_success"][lv][s]) is None else f"{v:,}" for lv in levels]
+            lines.append(f"| {t['label']} | {s} | {num(row['success'])} | {num(row['spl'])} | "
+                         f"{num(row['collisions'], 1)} | {num(row['success_close'])} / {num(row['success_far'])} | "
+                         f"{num(row['r2v_success'])} | {num(row['r2v_spl'])} | " + " | ".join(reach) + " |")
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -296,8 +317,8 @@ def plot_fig5b(table: dict, path: Path) -> None:
 def main(args, out: Path) -> dict:
     if args.budget <= 0 or args.eval_episodes <= 0 or args.r2v_episodes < 0 or args.jobs < 1:
         raise SystemExit("table1: --budget, --eval-episodes and --jobs must be positive, --r2v-episodes >= 0")
-    if not 0 < args.success_level <= 1:
-        raise SystemExit(f"table1: --success-level must be in (0, 1], got {args.success_level}")
+    if not all(0 < v <= 1 for v in args.success_levels):
+        raise SystemExit(f"table1: --success-levels must be in (0, 1], got {args.success_levels}")
     t0 = time.time()
     runs = [] if args.report_only else run_all(args, out)
     table = collect(args, out)
