@@ -390,9 +390,9 @@ def test_executor_alone_learns_to_reach_subgoals(tmp_path):
     (a random executor) to at least 0.6."""
     cfg = replace(
         preset_defaults("smoke"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1,
-        planner="random", random_subgoal_distance=1.5, random_subgoal_angle=0.5, resolution=64, executor_hidden=128, lr=1e-3,
-        executor_stop_prior=None, executor_heading_prior=None, anneal_lr=False, n_ex=10, subgoal_radius=0.5,
-        executor_stop_penalty=0.0, executor_collision_reward=0.0,
+        planner="random", random_subgoal_angle=0.5, resolution=64, executor_stop_prior=None,
+        executor_heading_prior=None, anneal_lr=False, n_ex=10, subgoal_radius=0.5, executor_stop_penalty=0.0,
+        executor_collision_reward=0.0,
         max_steps=40, total_steps=16_000, num_envs=8, rollout_steps=32, ppo_epochs=4, num_minibatches=2,
         progress=False, torch_threads=1, checkpoint_interval=1000)
     t = make_trainer(validate(cfg))
