@@ -104,3 +104,25 @@ def test_egomap_off_raises():
     sim = sim_at(ROOM, (0.0, 0.0), 0.0, resolution=32, egomap=False)
     with pytest.raises(RuntimeError):
         sim.egomap()
+
+
+
+@pytest.mark.parametrize("degrees", [10, 20, 30, 40])
+@pytest.mark.parametrize("offset", [0.0, 0.125, 0.25, 0.375])
+def test_a_door_stays_open_on_the_map(degrees, offset):
+    # A wall 2 m ahead with a 0.8 m door, the agent facing it: the room turned by
+    # ``degrees`` (so the allocentric map's cells lie askew under the ego map's) and the
+    # agent moved ``offset`` to the left. The wall's cells either side are obstacles and a
+    # column of cells through the doorway is not (with any sample counting, a quarter of
+    # these views closed the door).
+    a = math.radians(degrees)
+    c, s = math.cos(a), math.sin(a)
+    walls = room_walls(-4.0, -4.0, 4.0, 4.0) + [(2.0, -4.0, 2.0, -0.4), (2.0, 0.4, 2.0, 4.0)]
+    turned = [(c * x0 - s * y0, s * x0 + c * y0, c * x1 - s * y1, s * x1 + c * y1) for x0, y0, x1, y1 in walls]
+    sim = sim_at(Scene("door", np.array(turned) + 5.0), (5.0 - s * offset, 5.0 + c * offset), a, resolution=128)
+    m = sim.egomap()[0]
+    wall = range(ego_cell(2.2, 0.0)[0], ego_cell(1.7, 0.0)[0] + 1)  # the rows the wall's face can fall in
+    for y in (-1.5, -1.0, 1.0, 1.5):
+        assert any(m[0, r, ego_cell(0.0, y - offset)[1]] == 1.0 for r in wall)
+    doorway = range(ego_cell(0.0, 0.4 - offset)[1], ego_cell(0.0, -0.4 - offset)[1] + 1)
+    assert any(all(m[0, r, col] == 0.0 for r in wall) for col in doorway)

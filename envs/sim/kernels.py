@@ -798,10 +798,12 @@ def egomap_update(depth, est_pose, map_origin, amap, map_cs, stride, hfov, max_d
 @threaded()
 def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
     """Crop ``out[k]`` (2, S, S) for world ``rows[k]``: channel 0 obstacles, channel 1
-    explored free space; row 0 is ahead of the agent, column 0 to its left."""
+    explored free space; row 0 is ahead of the agent, column 0 to its left. Each cell samples
+    4 x 4 points: channel 0 is 1 when at least a quarter of them are obstacles (so a door
+    narrower than two cells stays open), channel 1 the fraction that is explored floor."""
     S = out.shape[2]
     M = amap.shape[1]
-    sub = 2
+    sub = 4
     for k in prange(rows.shape[0]):
         wi = rows[k]
         x0 = est_pose[wi, 0]
@@ -825,8 +827,9 @@ def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
                             continue
                         v = amap[wi, r, c]
                         if v & EGO_OBSTACLE:
-                            obs = 1.0
+                            obs += 1.0
                         elif v & EGO_EXPLORED:
                             free += 1.0 / (sub * sub)
-                out[k, 0, a, b] = obs
+                blocked = obs * 4 >= sub * sub
+                out[k, 0, a, b] = 1.0 if blocked else 0.0
                 out[k, 1, a, b] = free
