@@ -106,7 +106,6 @@ def test_egomap_off_raises():
         sim.egomap()
 
 
-
 @pytest.mark.parametrize("degrees", [10, 20, 30, 40])
 @pytest.mark.parametrize("offset", [0.0, 0.125, 0.25, 0.375])
 def test_a_door_stays_open_on_the_map(degrees, offset):
