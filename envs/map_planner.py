@@ -33,6 +33,7 @@ import math
 import numpy as np
 from numba import njit
 
+STOP_DISTANCE = 0.19  # m: the stand-in planners stop nearer the goal than this (success is < 0.2 m)
 _NEIGHBOURS = np.array([(-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1)], np.int64)
 
 
@@ -157,7 +158,7 @@ class MapPlanner:
     name = "map"
     ground_truth = False
 
-    def __init__(self, cell: float = 0.5, lookahead: float = 2.0, stop_distance: float = 0.19,
+    def __init__(self, cell: float = 0.5, lookahead: float = 2.0, stop_distance: float = STOP_DISTANCE,
                  line_of_sight: bool = False):
         self.cell, self.lookahead, self.stop_distance = float(cell), float(lookahead), float(stop_distance)
         self.line_of_sight = bool(line_of_sight)

@@ -117,3 +117,12 @@ def test_line_of_sight_planner_plans_round_a_wall_to_a_near_goal():
     assert np.allclose(plain[0], (1.5, 0.0), atol=1e-6)
     assert abs(los[0, 1]) > 0.5, los  # off to one side, towards the wall's end
     assert ego[0, 0][_cell(los[0])] == 0.0
+
+
+def test_value_iteration_planner_over_the_oracle_executor_navigates():
+    """``evaluate --planner vin``: the untrained value-iteration module's sub-goal (what the
+    learned planner offsets), over the oracle executor, reaches most goals."""
+    from plex_ma.evaluate import main
+
+    out = main(["--planner", "vin", "--executor", "oracle", "--split", "test", "--episodes", "32", "--num-envs", "8"])
+    assert out["success"] >= 0.8, out["success"]  # 1.0 at the time of writing

@@ -7,7 +7,8 @@ with a pluggable policy for each agent:
 agent         learned                                stand-ins
 ============  =====================================  =====================================
 planner       :class:`LearnedPlanner` (a network)    :class:`RandomPlanner`, :class:`OraclePlannerPolicy`,
-                                                     :class:`MapPlannerPolicy`
+                                                     :class:`MapPlannerPolicy`,
+                                                     :class:`ValueIterationPlannerPolicy`
 executor      :class:`LearnedExecutor` (a network)   :class:`RandomExecutor`, :class:`OracleExecutorPolicy`
 ============  =====================================  =====================================
 
@@ -29,7 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from plex_ma.envs.map_planner import MapPlanner
+from plex_ma.envs.map_planner import STOP_DISTANCE, MapPlanner
+from plex_ma.networks.value_iteration import ValueIteration
 from plex_ma.envs.oracle import OracleExecutor, OraclePlanner
 from plex_ma.envs.rules import ELI_DIM, PLANNER
 from plex_ma.envs.sim.core import STOP
@@ -100,6 +102,24 @@ class MapPlannerPolicy:
     def decide(self, obs: dict, rows: np.ndarray) -> dict:
         stop, sub = self.planner.decide(obs)
         return {"stop": stop, "subgoal": sub}
+
+
+class ValueIterationPlannerPolicy:
+    """The value-iteration module's sub-goal alone: :class:`~plex_ma.networks.ValueIteration`
+    at its starting weights (untrained, so the same in every run), the prior the learned
+    planner offsets. It reads the planner's observations only and stops as the map planner
+    does."""
+
+    learns, ground_truth, name = False, False, "vin"
+
+    def __init__(self, env: PlexVectorEnv | None = None, stop_distance: float = STOP_DISTANCE):
+        self.vin, self.stop_distance = ValueIteration(), stop_distance
+
+    def decide(self, obs: dict, rows: np.ndarray) -> dict:
+        goal = torch.as_tensor(np.asarray(obs["goal"], np.float32))
+        with torch.no_grad():
+            _, sub = self.vin(torch.as_tensor(np.asarray(obs["ego_map"], np.float32)), goal)
+        return {"stop": (goal[:, 0] < self.stop_distance).numpy().astype(np.int64), "subgoal": sub.numpy()}
 
 
 # --------------------------------------------------------------------------- executors
@@ -246,12 +266,13 @@ class PlexDriver:
 
 
 #: The planner policies :func:`make_planner` builds by name (the ``--planner`` choices of the CLIs).
-PLANNER_KINDS = ("learned", "oracle", "random", "map", "map-los")
+PLANNER_KINDS = ("learned", "oracle", "random", "map", "map-los", "vin")
 
 
 def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None, **random_kw):
-    """A planner policy by name: 'learned' (needs ``net``), 'random', 'oracle', 'map' or 'map-los'
-    (the map planner with sub-goals in a straight line over seen floor)."""
+    """A planner policy by name: 'learned' (needs ``net``), 'random', 'oracle', 'map', 'map-los'
+    (the map planner with sub-goals in a straight line over seen floor) or 'vin' (the
+    untrained value-iteration module's sub-goal)."""
     if kind in ("learn", "learned"):
         if net is None:
             raise ValueError("a learned planner needs a network (a checkpoint)")
@@ -262,7 +283,9 @@ def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = 
         return OraclePlannerPolicy(env)
     if kind in ("map", "map-los"):
         return MapPlannerPolicy(env, line_of_sight=kind == "map-los")
-    raise ValueError(f"unknown planner {kind!r}; choose learned, random, oracle, map or map-los")
+    if kind == "vin":
+        return ValueIterationPlannerPolicy(env)
+    raise ValueError(f"unknown planner {kind!r}; choose learned, random, oracle, map, map-los or vin")
 
 
 def make_executor(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None):
