@@ -373,8 +373,7 @@ def main(argv: list[str] | None = None) -> None:
     pe.add_argument("--aec-turns", type=positive, default=2000, help="AEC turns to time")
     pe.add_argument("--planner-stop-prob", type=probability, default=0.01, help="chance that a planner action is STOP")
     pe.add_argument("--executor-stop-prob", type=probability, default=0.1, help="chance that an executor action is STOP")
-    h = ("make_vec's batched PointNav vector env against SyncVectorEnv of single envs (default: 16 worlds at "
-         "64 px, as the cpu preset for the flat baselines)")
+    h = "make_vec's batched PointNav vector env against SyncVectorEnv of single envs (default: 16 worlds at 64 px)"
     pv = sub.add_parser("gymvec", help=h, description=h)
     common(pv, 300, "vector steps to time (each env gets as many)")
     pv.set_defaults(num_envs=16, resolution=64)

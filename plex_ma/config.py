@@ -166,8 +166,9 @@ def smoke_recipe(plex: bool) -> dict:
 def cpu_recipe(plex: bool) -> dict:
     """The recommended recipe, TrainConfig's defaults: reward-only PLEX, a 40k-step executor
     warm-up under random sub-goals in an open room, then both agents by PPO on the reward
-    alone. The flat baselines keep 16 worlds of 64 px, 64-step rollouts and 4 PPO epochs."""
-    return {} if plex else dict(num_envs=16, rollout_steps=64, resolution=64, ppo_epochs=4)
+    alone. The flat baselines share its images, worlds and rollouts and take 4 PPO epochs
+    per update (their best in a sweep of epochs and learning rates: docs/results.md)."""
+    return {} if plex else dict(ppo_epochs=4)
 
 
 def paper_recipe(plex: bool) -> dict:

@@ -31,11 +31,11 @@ import numpy as np
 import torch
 
 from plex_ma.envs.map_planner import STOP_DISTANCE, MapPlanner
-from plex_ma.networks.value_iteration import ValueIteration
 from plex_ma.envs.oracle import OracleExecutor, OraclePlanner
 from plex_ma.envs.rules import ELI_DIM, PLANNER
 from plex_ma.envs.sim.core import STOP
 from plex_ma.envs.vector import PlexVecStep, PlexVectorEnv
+from plex_ma.networks.value_iteration import ValueIteration
 
 # --------------------------------------------------------------------------- planners
 
@@ -285,7 +285,7 @@ def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = 
         return MapPlannerPolicy(env, line_of_sight=kind == "map-los")
     if kind == "vin":
         return ValueIterationPlannerPolicy(env)
-    raise ValueError(f"unknown planner {kind!r}; choose learned, random, oracle, map, map-los or vin")
+    raise ValueError(f"unknown planner {kind!r}; choose one of {', '.join(PLANNER_KINDS)}")
 
 
 def make_executor(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None):
