@@ -23,7 +23,7 @@ from plex_ma.config import DEVICE_HELP, TrainConfig
 from plex_ma.envs.sim import EpisodeFileError, SceneError, load_episodes
 from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
-from plex_ma.trainers.driver import PLANNER_KINDS
+from plex_ma.trainers.driver import EXECUTOR_KINDS, PLANNER_KINDS
 from plex_ma.trainers.evaluation import METRICS, episode_set, format_table, load_policies, run_episodes, summarize
 from plex_ma.viz import EpisodeRecorder
 
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> dict:
                    help="PLEX planner: the checkpoint's, the shortest-path oracle (ground truth), random, or "
                         "shortest paths on the agent's own ego map (map, map-los), or the untrained value-iteration "
                         "module's sub-goal (vin); no ground truth in the last three")
-    p.add_argument("--executor", choices=["learned", "oracle", "random"], default="learned",
+    p.add_argument("--executor", choices=EXECUTOR_KINDS, default="learned",
                    help="PLEX executor: the checkpoint's, the shortest-path oracle (ground truth) or random")
     p.add_argument("--sample", action="store_true", help="sample the learned agents' actions (seeded) instead of greedy")
     p.add_argument("--seed", type=int, default=0, help="seeds --sample and the random stand-ins")

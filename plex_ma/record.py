@@ -30,7 +30,7 @@ from plex_ma.config import DEVICE_HELP, TrainConfig, replace
 from plex_ma.envs.sim import EpisodeFileError, SceneError
 from plex_ma.trainers.checkpoint import CheckpointError
 from plex_ma.trainers.device import DeviceError, resolve_device
-from plex_ma.trainers.driver import PLANNER_KINDS
+from plex_ma.trainers.driver import EXECUTOR_KINDS, PLANNER_KINDS
 from plex_ma.trainers.evaluation import load_policies, run_episodes
 from plex_ma.viz import EpisodeRecorder
 
@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--planner", choices=PLANNER_KINDS, default=None,
                    help="PLEX planner (default: the checkpoint's; oracle = ground truth; map = shortest paths on "
                         "the agent's own ego map; vin = the untrained value-iteration module's sub-goal)")
-    p.add_argument("--executor", choices=["learned", "oracle", "random"], default=None,
+    p.add_argument("--executor", choices=EXECUTOR_KINDS, default=None,
                    help="PLEX executor (default: the checkpoint's; oracle = ground truth)")
     p.add_argument("--episodes", type=integer(1), default=1, help="episodes to record")
     p.add_argument("--out", required=True, help="the .rrd file to write")

@@ -267,6 +267,8 @@ class PlexDriver:
 
 #: The planner policies :func:`make_planner` builds by name (the ``--planner`` choices of the CLIs).
 PLANNER_KINDS = ("learned", "oracle", "random", "map", "map-los", "vin")
+#: The executor policies :func:`make_executor` builds by name.
+EXECUTOR_KINDS = ("learned", "oracle", "random")
 
 
 def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None, **random_kw):
@@ -298,4 +300,4 @@ def make_executor(kind: str, env: PlexVectorEnv, net=None, deterministic: bool =
         return RandomExecutor(rng=rng)
     if kind == "oracle":
         return OracleExecutorPolicy(env)
-    raise ValueError(f"unknown executor {kind!r}; choose learned, random or oracle")
+    raise ValueError(f"unknown executor {kind!r}; choose one of {', '.join(EXECUTOR_KINDS)}")

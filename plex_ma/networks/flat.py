@@ -17,8 +17,9 @@ class FlatPolicy(Executor):
     The executor's network with the end goal (``pointgoal``) in place of the sub-goal; the
     trainer passes ``starts`` only at episode starts, so the memory spans the episode. The
     SMT memory keeps the episode's last ``smt_memory`` steps (the trainer passes
-    ``--smt-memory``, 128; episodes run up to 500 steps). Unlike Savva et al., the heads sit on the same 128-d output layer as the
-    executor's, so the baselines and PLEX differ only in the hierarchy.
+    ``--smt-memory``, 128; episodes run up to 500 steps). Unlike Savva et al., the heads
+    sit on the same 128-d output layer as the executor's, so the baselines and PLEX differ
+    only in the hierarchy.
     """
 
     goal_key = "pointgoal"
