@@ -14,7 +14,7 @@ from plex_ma.envs.rules import NavConfig, PlexConfig, PlexWorlds, PointNavWorlds
 from plex_ma.envs.sim.core import MOVE_FORWARD, TURN_LEFT, TURN_RIGHT
 from plex_ma.envs.vector import PointNavVectorEnv
 from plex_ma.evaluate import main as evaluate_main
-from plex_ma.networks import FlatMapPolicy, FlatPolicy, MapEncoder, Planner
+from plex_ma.networks import FlatMapPolicy, FlatPolicy, MapEncoder, Planner, ValueIteration
 from plex_ma.train import main as train_main
 from plex_ma.trainers import make_trainer
 from plex_ma.trainers.base import build_policies
@@ -69,14 +69,16 @@ def test_vector_env_ego_map_is_opt_in():
 
 def test_map_policy_reads_the_map_through_the_planners_encoder():
     """The policy's map encoder is the planner's (same modules, same parameter names under
-    ``map.``); the map changes the policy's output and its gradient reaches the encoder."""
+    ``map.``, the value-iteration module in both); the map changes the policy's output and
+    its gradient reaches the encoder's convolutions."""
     torch.manual_seed(0)
     policy = FlatMapPolicy("gru", 64, gru_hidden=32, value_iteration=True)
     planner = Planner(value_iteration=True)
     assert isinstance(planner, MapEncoder) and type(policy.map) is MapEncoder
     planner_map = {k: v.shape for k, v in planner.state_dict().items() if k.startswith(("convs.", "vin."))}
     policy_map = {k.removeprefix("map."): v.shape for k, v in policy.state_dict().items() if k.startswith("map.")}
-    assert policy_map == planner_map and len(policy_map) == 6
+    assert policy_map == planner_map and len(policy_map) == 4
+    assert type(policy.map.vin) is type(planner.vin) is ValueIteration
     assert policy.reads_ego_map and not FlatPolicy.reads_ego_map
     gen = torch.Generator().manual_seed(2)
     obs = policy.example_obs(3, gen)
@@ -88,7 +90,7 @@ def test_map_policy_reads_the_map_through_the_planners_encoder():
     seq = {k: v.unsqueeze(0) for k, v in obs.items()}
     lp, ent, v = policy.evaluate_sequences(seq, torch.zeros(1, 3), starts[None], policy.initial_state(3))
     (v.sum() + lp.sum()).backward()
-    assert policy.map.convs[0].weight.grad.abs().sum() > 0 and policy.map.vin.cost.weight.grad.abs().sum() > 0
+    assert policy.map.convs[0].weight.grad.abs().sum() > 0
 
 
 def test_method_builds_the_map_policy_with_the_presets_value_iteration():
@@ -114,7 +116,7 @@ def test_smoke_training_and_evaluation_through_the_clis(tmp_path, capsys):
                 "--torch-threads", "1", "--record-interval", "0"])
     state = load_checkpoint(run / "latest.pt")
     assert state["config"]["method"] == "ppo-gru-map" and state["step"] >= 256
-    assert any(k.startswith("map.vin.") for k in state["models"]["policy"])
+    assert state["config"]["planner_value_iteration"] is True
     lines = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert any("learner/policy_loss" in x for x in lines)
     out = tmp_path / "eval.json"

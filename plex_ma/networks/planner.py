@@ -64,7 +64,7 @@ class MapEncoder(nn.Module):
             nn.Flatten(),
         )
         self.map_dim = _conv_out_dim(self.convs, (ego_channels, map_size, map_size))
-        self.vin = ValueIteration(ego_channels, map_size) if value_iteration else None
+        self.vin = ValueIteration(map_size) if value_iteration else None
         self.vin_dim = self.vin.out_dim if self.vin is not None else 0
 
     def read_map(self, ego: torch.Tensor, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None,

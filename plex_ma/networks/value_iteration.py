@@ -1,7 +1,8 @@
 """The value-iteration module over the ego map (:class:`ValueIteration`) and its Bellman
-updates (:func:`bellman`): on the CPU compiled numba loops with their own gradient
-(:class:`_BellmanCPU`), elsewhere the tensor version :func:`bellman_reference`, which the
-loops reproduce (tests/test_value_iteration.py)."""
+updates (:func:`bellman`): on the CPU compiled numba loops, elsewhere the tensor version
+:func:`bellman_reference`, which the loops reproduce bit for bit
+(tests/test_value_iteration.py). The module has no parameters: it is a fixed planning
+step whose read-out the planner's layers learn from."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from plex_ma.envs.sim.core import BatchedSim
 
 EGO_CELL = BatchedSim.ego_cell  # m: the ego map's cell size (32 x 32 cells, the agent at cell (16, 16))
 SUBGOAL_REACH = 2.0  # m: the value-iteration read-out looks for its sub-goal within this distance
+OBSTACLE_LOGIT, FREE_LOGIT = 100.0, -4.0  # a cell's cost: 1 + softplus(OBSTACLE_LOGIT x obstacle + FREE_LOGIT)
 BELLMAN_UNREACHED = 1e4  # the distance of cells no path has reached (and of the map's outside)
 DIAGONALS = ((-1, -1), (-1, 1), (1, -1), (1, 1))  # (row, column) steps, in the order the update takes them
 
@@ -25,28 +27,26 @@ class ValueIteration(nn.Module):
     """A planning module over the ego map: a value-iteration network (Tamar et al. 2016),
     as CMP (Gupta et al. 2017) plans on egocentric maps.
 
-    - A learned cost per cell, ``1 + softplus(conv3x3(ego map))``, started at about 1 on
-      free cells and 97 on cells seen as obstacles (unseen cells count as free).
+    - A cost per cell, ``1 + softplus(OBSTACLE_LOGIT x obstacle + FREE_LOGIT)``: about 1.02 on
+      free and unseen cells (unseen cells count as free) and 97 on cells seen as obstacles.
+      It was a learned 3x3 convolution started at these values, but in 2,048,000 steps of
+      PLEX training it moved by about 0.03 and evaluating with it reset changed nothing
+      measurable (docs/results.md), so it is fixed and no gradient flows through the module.
     - ``iterations`` Bellman updates of the distance to the goal over 8 neighbours (a
       diagonal step costs sqrt 2 x the largest cost of the cell and the two cells beside
       the step, so paths do not cut a wall's corner). The goal is its cell, or, beyond the
-      map, the cell where the straight line to it leaves the map. Gradients flow through
-      the last ``grad_iterations`` updates only: the cost map is local, so that is where it
-      learns (:func:`bellman`).
+      map, the cell where the straight line to it leaves the map (:func:`bellman`).
     - Read-out (:meth:`forward`): the distance field within ``SUBGOAL_REACH`` of the agent
       relative to its smallest value there, and a sub-goal: the cell nearest the goal among
       those the agent reaches within that distance (the goal's exact position stands in for
       its cell; the agent's own cell is never chosen).
     """
 
-    def __init__(self, ego_channels: int = 2, map_size: int = 32, iterations: int = 40, grad_iterations: int = 8):
+    def __init__(self, map_size: int = 32, iterations: int = 40):
         super().__init__()
-        self.s, self.iterations, self.grad_iterations = map_size, iterations, grad_iterations
-        self.cost = nn.Conv2d(ego_channels, 1, 3, padding=1)
-        with torch.no_grad():
-            self.cost.weight.zero_()
-            self.cost.weight[0, 0, 1, 1] = 100.0  # channel 0: obstacles
-            self.cost.bias.fill_(-4.0)
+        self.s, self.iterations = map_size, iterations
+        # checkpoints saved while the cost was a learned convolution hold its weights: ignored
+        self._register_load_state_dict_pre_hook(_drop_learned_cost)
         s, r = map_size, int(SUBGOAL_REACH / EGO_CELL)
         self.reach_cells = r
         rows = torch.arange(s, dtype=torch.float32)
@@ -75,24 +75,25 @@ class ValueIteration(nn.Module):
         b = torch.floor(s / 2 - left * k / EGO_CELL).long().clamp(0, s - 1)
         return a, b, inside
 
+    @torch.no_grad()
     def forward(self, ego: torch.Tensor, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(features (B, out_dim), sub-goal (B, 2) = (distance m, direction rad))."""
+        """(features (B, out_dim), sub-goal (B, 2) = (distance m, direction rad)); no gradient."""
         B, s = ego.shape[0], self.s
-        cost = 1.0 + F.softplus(self.cost(ego)[:, 0])
+        cost = 1.0 + F.softplus(OBSTACLE_LOGIT * ego[:, 0] + FREE_LOGIT)
         a, b, inside = self.goal_cell(goal)
         at_goal = torch.zeros(B, s, s, dtype=torch.bool, device=ego.device)
         at_goal[torch.arange(B, device=ego.device), a, b] = True
-        to_goal = bellman(cost, at_goal, self.iterations, self.grad_iterations)
-        # distances from the agent over the cells near it (its own cell: 0), a mask only: no gradient
+        to_goal = bellman(cost, at_goal, self.iterations)
+        # distances from the agent over the cells near it (its own cell: 0)
         lo, hi = self.crop
         pad = 2  # cells round the reach that paths from the agent may pass through
-        near_cost = cost[:, lo - pad:hi + pad, lo - pad:hi + pad].detach()
+        near_cost = cost[:, lo - pad:hi + pad, lo - pad:hi + pad]
         # the goal's cell is always enterable: a 0.5 m cell that holds the goal and a wall is
         # an obstacle cell, and a sub-goal search that cannot enter it never sets the goal
         near_cost = torch.where(at_goal[:, lo - pad:hi + pad, lo - pad:hi + pad], torch.ones_like(near_cost), near_cost)
         at_agent = torch.zeros_like(near_cost, dtype=torch.bool)
         at_agent[:, self.reach_cells + pad, self.reach_cells + pad] = True
-        from_agent = bellman(near_cost, at_agent, 2 * (self.reach_cells + pad), 0)
+        from_agent = bellman(near_cost, at_agent, 2 * (self.reach_cells + pad))
         from_agent = from_agent[:, pad:-pad, pad:-pad][:, self.disc]
         d = to_goal[:, lo:hi, lo:hi][:, self.disc]  # (B, cells within reach)
         # the sub-goal: the cell nearest the goal among those the agent reaches within
@@ -115,28 +116,32 @@ class ValueIteration(nn.Module):
         return feats, torch.stack([rho, theta], dim=1)
 
 
-def bellman(cost: torch.Tensor, sources: torch.Tensor, iterations: int, grad_iterations: int) -> torch.Tensor:
+def _drop_learned_cost(state_dict, prefix, *args):
+    for k in ("cost.weight", "cost.bias"):
+        state_dict.pop(prefix + k, None)
+
+
+def bellman(cost: torch.Tensor, sources: torch.Tensor, iterations: int) -> torch.Tensor:
     """(B, H, W) distances to the nearest ``sources`` cell (B, H, W) bool after ``iterations``
     Bellman updates over 8 neighbours: a path pays ``cost`` for each of its cells but the
     source (sqrt 2 x the largest cost of the cell and the two beside the step, for a diagonal
-    step); cells not reached hold 1e4. Gradients flow through the last ``grad_iterations`` updates.
+    step); cells not reached hold 1e4. No gradient.
 
-    On the CPU, for float32 costs, the updates and their gradient run as compiled loops
-    (:class:`_BellmanCPU`); otherwise as the tensor operations of :func:`bellman_reference`,
-    which the loops reproduce: the same distances bit for bit, and the same gradient
-    (torch's rule for ``minimum`` and ``maximum``: a tie splits the gradient in halves) up to
-    the order of float additions. Costs must not be NaN (the loops would not pass a NaN on)."""
-    if not 0 <= grad_iterations <= iterations:
-        raise ValueError(f"bellman: grad_iterations={grad_iterations} must lie in [0, iterations={iterations}]")
+    On the CPU, for float32 costs, the updates run as compiled loops
+    (:func:`_bellman_forward`); otherwise as the tensor operations of
+    :func:`bellman_reference`: the same distances bit for bit. Costs must not be NaN (the
+    loops would not pass a NaN on)."""
     if cost.device.type != "cpu" or cost.dtype != torch.float32:
-        return bellman_reference(cost, sources, iterations, grad_iterations)
-    if grad_iterations == 0 or not (torch.is_grad_enabled() and cost.requires_grad):
-        return _BellmanCPU.distances(cost, sources, iterations, 0)[0]
-    return _BellmanCPU.apply(cost, sources, iterations, grad_iterations)
+        return bellman_reference(cost, sources, iterations)
+    c = cost.detach().contiguous().numpy()
+    out = np.empty_like(c)
+    _bellman_forward(c, sources.contiguous().numpy(), iterations, out)
+    return torch.from_numpy(out)
 
 
-def bellman_reference(cost: torch.Tensor, sources: torch.Tensor, iterations: int, grad_iterations: int) -> torch.Tensor:
-    """:func:`bellman` as tensor operations (any device; autograd computes the gradient)."""
+@torch.no_grad()
+def bellman_reference(cost: torch.Tensor, sources: torch.Tensor, iterations: int) -> torch.Tensor:
+    """:func:`bellman` as tensor operations (any device)."""
     B, h, w = cost.shape
     big = BELLMAN_UNREACHED
     cp = F.pad(cost, (1, 1, 1, 1), value=big)
@@ -145,52 +150,15 @@ def bellman_reference(cost: torch.Tensor, sources: torch.Tensor, iterations: int
                                                              cp[:, 1:h + 1, 1 + db:1 + db + w]))
             for da, db in DIAGONALS}
     d = torch.where(sources, 0.0, big)
-
-    def update(d):
+    for _ in range(iterations):
         p = F.pad(d, (1, 1, 1, 1), value=big)
         straight = torch.minimum(torch.minimum(p[:, 0:h, 1:w + 1], p[:, 2:h + 2, 1:w + 1]),
                                  torch.minimum(p[:, 1:h + 1, 0:w], p[:, 1:h + 1, 2:w + 2]))
         best = straight + cost
         for (da, db), cd in diag.items():
             best = torch.minimum(best, p[:, 1 + da:1 + da + h, 1 + db:1 + db + w] + cd)
-        return torch.where(sources, 0.0, torch.minimum(d, best))
-
-    with torch.no_grad():
-        for _ in range(iterations - grad_iterations):
-            d = update(d)
-    for _ in range(grad_iterations):
-        d = update(d)
+        d = torch.where(sources, 0.0, torch.minimum(d, best))
     return d
-
-
-class _BellmanCPU(torch.autograd.Function):
-    """:func:`bellman` on the CPU: the updates in :func:`_bellman_forward`, the gradient in
-    :func:`_bellman_backward` (replaying the last ``grad_iterations`` updates from the
-    distances saved before each)."""
-
-    @staticmethod
-    def distances(cost, sources, iterations, grad_iterations) -> tuple[torch.Tensor, np.ndarray]:
-        """The distances, and those before each of the last ``grad_iterations`` updates."""
-        c = cost.detach().contiguous().numpy()
-        out = np.empty_like(c)
-        saved = np.empty((grad_iterations,) + c.shape, np.float32)
-        _bellman_forward(c, sources.contiguous().numpy(), iterations, out, saved)
-        return torch.from_numpy(out), saved
-
-    @staticmethod
-    def forward(ctx, cost, sources, iterations, grad_iterations):
-        d, ctx.saved = _BellmanCPU.distances(cost, sources, iterations, grad_iterations)
-        ctx.save_for_backward(cost, sources)
-        return d
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad):
-        cost, sources = ctx.saved_tensors
-        g_cost = np.zeros(cost.shape, np.float32)
-        _bellman_backward(cost.detach().contiguous().numpy(), sources.contiguous().numpy(), ctx.saved,
-                          grad.contiguous().numpy().astype(np.float32, copy=False), g_cost)
-        return torch.from_numpy(g_cost), None, None, None
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -219,12 +187,11 @@ def _diag_costs(c, cd):
 
 
 @numba.njit(cache=True, nogil=True)
-def _bellman_forward(cost, sources, iterations, out, saved):
-    """``iterations`` updates of every map into ``out``; the distances before each of the last
-    ``len(saved)`` updates into ``saved``. Same float operations as :func:`bellman_reference`."""
+def _bellman_forward(cost, sources, iterations, out):
+    """``iterations`` updates of every map into ``out``, with the same float operations as
+    :func:`bellman_reference`."""
     B, h, w = cost.shape
     big = np.float32(BELLMAN_UNREACHED)
-    n_saved = saved.shape[0]
     p = np.full((h + 2, w + 2), big, np.float32)
     cd = np.empty((4, h, w), np.float32)
     for b in range(B):
@@ -233,9 +200,7 @@ def _bellman_forward(cost, sources, iterations, out, saved):
         for i in range(h):
             for j in range(w):
                 d[i, j] = np.float32(0.0) if src[i, j] else big
-        for it in range(iterations):
-            if it >= iterations - n_saved:
-                saved[it - (iterations - n_saved), b] = d
+        for _ in range(iterations):
             p[1:h + 1, 1:w + 1] = d
             for i in range(h):
                 for j in range(w):
@@ -247,89 +212,3 @@ def _bellman_forward(cost, sources, iterations, out, saved):
                     best = min(best, p[i + 2, j] + cd[2, i, j])
                     best = min(best, p[i + 2, j + 2] + cd[3, i, j])
                     d[i, j] = min(p[i + 1, j + 1], best)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _min_grad(x, y, g):
-    """Gradients of min(x, y) for x and y (torch's ``minimum``: a tie gives each half)."""
-    if x < y:
-        return g, np.float32(0.0)
-    if x > y:
-        return np.float32(0.0), g
-    return g / np.float32(2.0), g / np.float32(2.0)
-
-
-@numba.njit(cache=True, nogil=True)
-def _bellman_backward(cost, sources, saved, grad, g_cost):
-    """The gradient of the distances after the last ``len(saved)`` updates (``grad``) with
-    respect to ``cost``, into ``g_cost``: each update replayed in reverse from the distances
-    before it, then the diagonal step costs."""
-    B, h, w = cost.shape
-    big = np.float32(BELLMAN_UNREACHED)
-    n_saved = saved.shape[0]
-    p = np.full((h + 2, w + 2), big, np.float32)
-    g_p = np.zeros((h + 2, w + 2), np.float32)
-    g_d = np.zeros((h, w), np.float32)
-    cd = np.empty((4, h, w), np.float32)
-    g_cd = np.zeros((4, h, w), np.float32)
-    t = np.empty(4, np.float32)
-    nb = np.empty(4, np.float32)
-    bs = np.empty(5, np.float32)  # the running minimum through the straight and diagonal steps
-    for b in range(B):
-        c, src, gc = cost[b], sources[b], g_cost[b]
-        _diag_costs(c, cd)
-        g_cd[:] = 0.0
-        g_d[:] = grad[b]
-        for it in range(n_saved - 1, -1, -1):
-            p[1:h + 1, 1:w + 1] = saved[it, b]
-            g_p[:] = 0.0
-            for i in range(h):
-                for j in range(w):
-                    g = g_d[i, j]
-                    g_d[i, j] = 0.0
-                    if src[i, j] or g == 0.0:
-                        continue
-                    # forward replay: straight step, then the four diagonals in order
-                    m1 = min(p[i, j + 1], p[i + 2, j + 1])
-                    m2 = min(p[i + 1, j], p[i + 1, j + 2])
-                    b0 = min(m1, m2) + c[i, j]
-                    nb[0], nb[1], nb[2], nb[3] = p[i, j], p[i, j + 2], p[i + 2, j], p[i + 2, j + 2]
-                    bs[0] = b0
-                    for k in range(4):
-                        t[k] = nb[k] + cd[k, i, j]
-                        bs[k + 1] = min(bs[k], t[k])
-                    g_old, g_best = _min_grad(p[i + 1, j + 1], bs[4], g)
-                    g_d[i, j] += g_old  # this cell's own distance before the update (read below)
-                    for k in range(3, -1, -1):
-                        g_best, g_t = _min_grad(bs[k], t[k], g_best)
-                        g_cd[k, i, j] += g_t
-                        da, db = _diagonal(k)
-                        g_p[i + 1 + da, j + 1 + db] += g_t
-                    gc[i, j] += g_best
-                    g_m1, g_m2 = _min_grad(m1, m2, g_best)
-                    gu, gdn = _min_grad(p[i, j + 1], p[i + 2, j + 1], g_m1)
-                    gl, gr = _min_grad(p[i + 1, j], p[i + 1, j + 2], g_m2)
-                    g_p[i, j + 1] += gu
-                    g_p[i + 2, j + 1] += gdn
-                    g_p[i + 1, j] += gl
-                    g_p[i + 1, j + 2] += gr
-            for i in range(h):
-                for j in range(w):
-                    g_d[i, j] += g_p[i + 1, j + 1]
-        # the diagonal step costs: sqrt 2 x max(cost, max(cost beside, cost beside))
-        for k in range(4):
-            da, db = _diagonal(k)
-            for i in range(h):
-                for j in range(w):
-                    g = g_cd[k, i, j] * np.float32(math.sqrt(2.0))
-                    if g == 0.0:
-                        continue
-                    a = c[i + da, j] if 0 <= i + da < h else big
-                    bb = c[i, j + db] if 0 <= j + db < w else big
-                    g_c, g_m = _min_grad(-c[i, j], -max(a, bb), g)  # max(x, y) = -min(-x, -y)
-                    gc[i, j] += g_c
-                    g_a, g_b = _min_grad(-a, -bb, g_m)
-                    if 0 <= i + da < h:
-                        gc[i + da, j] += g_a
-                    if 0 <= j + db < w:
-                        gc[i, j + db] += g_b
