@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> dict:
                         "PLEX agents are stand-ins")
     p.add_argument("--planner", choices=PLANNER_KINDS, default="learned",
                    help="PLEX planner: the checkpoint's, the shortest-path oracle (ground truth), random, or "
-                        "shortest paths on the agent's own ego map (map, map-los), or the untrained value-iteration "
+                        "shortest paths on the agent's own ego map (map, map-los), or the value-iteration "
                         "module's sub-goal (vin); no ground truth in the last three")
     p.add_argument("--executor", choices=EXECUTOR_KINDS, default="learned",
                    help="PLEX executor: the checkpoint's, the shortest-path oracle (ground truth) or random")

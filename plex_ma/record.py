@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--policy", choices=["random"], help="a random planner/executor pair instead of a checkpoint")
     p.add_argument("--planner", choices=PLANNER_KINDS, default=None,
                    help="PLEX planner (default: the checkpoint's; oracle = ground truth; map = shortest paths on "
-                        "the agent's own ego map; vin = the untrained value-iteration module's sub-goal)")
+                        "the agent's own ego map; vin = the value-iteration module's sub-goal)")
     p.add_argument("--executor", choices=EXECUTOR_KINDS, default=None,
                    help="PLEX executor (default: the checkpoint's; oracle = ground truth)")
     p.add_argument("--episodes", type=integer(1), default=1, help="episodes to record")

@@ -105,9 +105,8 @@ class MapPlannerPolicy:
 
 
 class ValueIterationPlannerPolicy:
-    """The value-iteration module's sub-goal alone: :class:`~plex_ma.networks.ValueIteration`
-    at its starting weights (untrained, so the same in every run), the prior the learned
-    planner offsets. It reads the planner's observations only and stops as the map planner
+    """The value-iteration module's sub-goal alone (:class:`~plex_ma.networks.ValueIteration`,
+    which has no weights, so the same in every run): the prior the learned planner offsets. It reads the planner's observations only and stops as the map planner
     does."""
 
     learns, ground_truth, name = False, False, "vin"
@@ -274,7 +273,7 @@ EXECUTOR_KINDS = ("learned", "oracle", "random")
 def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None, **random_kw):
     """A planner policy by name: 'learned' (needs ``net``), 'random', 'oracle', 'map', 'map-los'
     (the map planner with sub-goals in a straight line over seen floor) or 'vin' (the
-    untrained value-iteration module's sub-goal)."""
+    value-iteration module's sub-goal)."""
     if kind in ("learn", "learned"):
         if net is None:
             raise ValueError("a learned planner needs a network (a checkpoint)")
