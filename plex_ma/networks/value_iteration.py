@@ -29,9 +29,8 @@ class ValueIteration(nn.Module):
 
     - A cost per cell, ``1 + softplus(OBSTACLE_LOGIT x obstacle + FREE_LOGIT)``: about 1.02 on
       free and unseen cells (unseen cells count as free) and 97 on cells seen as obstacles.
-      It was a learned 3x3 convolution started at these values, but in 2,048,000 steps of
-      PLEX training it moved by about 0.03 and evaluating with it reset changed nothing
-      measurable (docs/results.md), so it is fixed and no gradient flows through the module.
+      It was a learned 3x3 convolution started at these values; training left it where it
+      started (docs/results.md), so it is fixed and no gradient flows through the module.
     - ``iterations`` Bellman updates of the distance to the goal over 8 neighbours (a
       diagonal step costs sqrt 2 x the largest cost of the cell and the two cells beside
       the step, so paths do not cut a wall's corner). The goal is its cell, or, beyond the
