@@ -106,8 +106,8 @@ class MapPlannerPolicy:
 
 class ValueIterationPlannerPolicy:
     """The value-iteration module's sub-goal alone (:class:`~plex_ma.networks.ValueIteration`,
-    which has no weights, so the same in every run): the prior the learned planner offsets. It reads the planner's observations only and stops as the map planner
-    does."""
+    which has no weights, so the same in every run): the prior the learned planner offsets.
+    It reads the planner's observations only and stops as the map planner does."""
 
     learns, ground_truth, name = False, False, "vin"
 
