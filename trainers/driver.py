@@ -116,8 +116,7 @@ class ValueIterationPlannerPolicy:
 
     def decide(self, obs: dict, rows: np.ndarray) -> dict:
         goal = torch.as_tensor(np.asarray(obs["goal"], np.float32))
-        with torch.no_grad():
-            _, sub = self.vin(torch.as_tensor(np.asarray(obs["ego_map"], np.float32)), goal)
+        _, sub = self.vin(torch.as_tensor(np.asarray(obs["ego_map"], np.float32)), goal)  # no gradient
         return {"stop": (goal[:, 0] < self.stop_distance).numpy().astype(np.int64), "subgoal": sub.numpy()}
 
 
