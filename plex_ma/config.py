@@ -78,7 +78,9 @@ class TrainConfig:
     gamma_ex: float = 0.9
     """executor discount per executor step"""
     gamma_pl: float = 0.95
-    """planner discount per planner decision"""
+    """planner discount per planner decision (unless --planner-step-gamma)"""
+    planner_step_gamma: float | None = None
+    """PLEX only: discount the planner per executor step instead (a decision that lasted k steps: this^k, as options in an SMDP); None: gamma_pl per decision"""
     gamma_flat: float = 0.99
     """flat baselines' discount per step"""
     gae_lambda: float = 0.95
@@ -214,6 +216,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.n_pl >= 1, "n_pl", "must be >= 1")
     for g in ("gamma_ex", "gamma_pl", "gamma_flat", "gae_lambda"):
         need(0.0 <= getattr(cfg, g) <= 1.0, g, "must be in [0, 1]")
+    need(cfg.planner_step_gamma is None or 0.0 < cfg.planner_step_gamma <= 1.0, "planner_step_gamma", "must be in (0, 1]")
     need(cfg.ppo_epochs >= 1, "ppo_epochs", "must be >= 1")
     need(1 <= cfg.num_minibatches <= cfg.num_envs, "num_minibatches", "must be in [1, num_envs]")
     need(cfg.clip > 0, "clip", "must be positive")

@@ -98,3 +98,28 @@ def test_advantages_match_the_former_loop_bit_for_bit():
         ref = _reference_advantages(buf.closed, buf.pending.copy(), buf.value.copy(), GAMMA, LAM)
         batch = buf.batch(GAMMA, LAM)
         assert np.array_equal(batch.advantages.numpy(), ref[0]) and np.array_equal(batch.returns.numpy(), ref[1])
+
+
+def test_per_step_discount_hand_computed():
+    """With a per-step discount g, a decision that lasted k executor steps discounts its
+    successor by g^k and its i-th step's reward by g^i; the decision's own step (the
+    planner's action) does not count as a step. World 0: 3 steps then a decision, then 1
+    step and a done; world 1: 1 step, cut with its next decision pending (V = 4)."""
+    g = 0.9
+    buf = DecisionBuffer(2, step_gamma=g)
+    count = np.zeros(2, int)
+    none = np.zeros(2, bool)
+    _decide(buf, count, [0, 1], [1.0, 2.0])
+    buf.rewards(np.array([0.5, 0.0]), none, executor_step=False)  # the decisions' own step: undiscounted, not counted
+    buf.rewards(np.array([1.0, 3.0]), none)
+    _decide(buf, count, [1], [4.0])  # world 1's first lasted 1 step: reward 3
+    buf.rewards(np.array([1.0, 0.0]), none)
+    buf.rewards(np.array([1.0, 0.0]), none)
+    _decide(buf, count, [0], [2.0])  # world 0's first lasted 3 steps: reward 0.5 + 1 + g + g^2
+    buf.rewards(np.array([5.0, 0.0]), np.array([True, False]))  # world 0's second: reward 5, done
+    batch = buf.batch(0.123, LAM)  # the per-decision gamma is ignored
+    w0_1 = 5.0 - 2.0
+    w0_0 = (0.5 + 1.0 + g + g * g) + g ** 3 * 2.0 - 1.0 + g ** 3 * LAM * w0_1
+    w1_0 = 3.0 + g * 4.0 - 2.0
+    torch.testing.assert_close(batch.advantages, torch.tensor([w0_0, w0_1, w1_0]))
+    assert batch.obs["x"][:, 0].tolist() == [0, 1, 10]

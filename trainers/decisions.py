@@ -1,7 +1,11 @@
 """The planner's decisions as PPO transitions (paper Algorithm 2).
 
 A planner decision is one transition whose reward is everything the planner earns until its
-next decision, discounted by gamma_PL per decision. :class:`DecisionBuffer` keeps, per
+next decision. Its successor is discounted by gamma_PL per decision, or, with a per-step
+discount gamma_step, by gamma_step^k for a decision that lasted k executor steps (and the
+rewards within it by gamma_step per step), as options are discounted in a semi-Markov
+decision process (Sutton, Precup and Singh 1999): the planner then pays for time, not for
+the number of its decisions. :class:`DecisionBuffer` keeps, per
 world, the decision that waits for its reward (*pending*): its reward adds up over the
 executor's turn, and it closes when the world's next decision comes (its successor's value
 bootstraps it) or when the episode ends (done). :meth:`DecisionBuffer.batch` lays the
@@ -22,10 +26,12 @@ class DecisionBuffer:
     """The planner's transitions of ``num_worlds`` worlds: each world's pending decision and
     the closed transitions of this planner rollout, in the order they closed."""
 
-    def __init__(self, num_worlds: int):
+    def __init__(self, num_worlds: int, step_gamma: float | None = None):
         n = num_worlds
+        self.step_gamma = step_gamma  # None: the discount is per decision
         self.pending = np.zeros(n, np.bool_)
         self.reward = np.zeros(n)  # earned so far by each pending decision
+        self.steps = np.zeros(n, np.int64)  # executor steps each pending decision has lasted
         self.value = np.zeros(n, np.float32)  # V of each pending decision's observation
         self.data: dict[str, torch.Tensor] | None = None  # their obs/*, stop, raw_subgoal, log_prob (made on first use)
         self.closed: list[dict] = []
@@ -52,12 +58,18 @@ class DecisionBuffer:
         self.data["log_prob"][idx] = log_prob
         self.value[rows] = np.asarray(value)
         self.reward[rows] = 0.0
+        self.steps[rows] = 0
         self.pending[rows] = True
 
-    def rewards(self, rewards: np.ndarray, ended: np.ndarray) -> None:
-        """The planner's rewards (N,) of one env step, and the worlds whose episode it ended
-        (N,) bool: their pending decisions close, done."""
-        self.reward[self.pending] += rewards[self.pending]
+    def rewards(self, rewards: np.ndarray, ended: np.ndarray, executor_step: bool = True) -> None:
+        """The planner's rewards (N,) of one env step (an executor step, or the decisions'
+        own), and the worlds whose episode it ended (N,) bool: their pending decisions
+        close, done."""
+        p = self.pending
+        scale = 1.0 if self.step_gamma is None else self.step_gamma ** self.steps[p]
+        self.reward[p] += scale * rewards[p]
+        if executor_step:
+            self.steps[p] += 1
         self._close(np.flatnonzero(ended), done=True)
 
     def _close(self, rows: np.ndarray, done: bool) -> None:
@@ -65,18 +77,22 @@ class DecisionBuffer:
         if not len(rows):
             return
         self.closed.append({"world": rows.copy(), "reward": self.reward[rows].astype(np.float32),
+                            "steps": self.steps[rows].copy(),
                             "done": np.full(len(rows), done), "value": self.value[rows].copy(),
                             **{k: v[rows].clone() for k, v in self.data.items()}})
         self.pending[rows] = False
 
     def batch(self, gamma: float, lam: float, device: str | torch.device = "cpu") -> Transitions:
         """The closed transitions, world by world in decision order, with GAE(``gamma``,
-        ``lam``) advantages and returns; they leave the buffer (the pending decisions stay)."""
+        ``lam``) advantages and returns (``gamma`` per decision; ignored with a per-step
+        discount); they leave the buffer (the pending decisions stay)."""
         cat = {k: (torch.cat if isinstance(v, torch.Tensor) else np.concatenate)([c[k] for c in self.closed])
                for k, v in self.closed[0].items()}
         self.closed = []
         order = np.argsort(cat["world"], kind="stable")  # each world's chain, in decision order
-        world, reward, done, value = (cat[k][order] for k in ("world", "reward", "done", "value"))
+        world, reward, done, value, steps = (cat[k][order] for k in ("world", "reward", "done", "value", "steps"))
+        if self.step_gamma is not None:
+            gamma = (self.step_gamma ** steps.astype(np.float64)).astype(np.float32)[:, None]
         # one (m, 1) sequence: a chain's last transition ends it, done or cut (bootstrapping
         # from the world's pending decision, or from 0 if it has none)
         cut = np.r_[world[1:] != world[:-1], True] & ~done

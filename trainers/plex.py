@@ -12,7 +12,8 @@ PLEX runs through the rollout driver (:mod:`.driver`), per iteration:
    N_EX-th action (a truncation: bootstrap from V of the observation after it, with the
    memory it had) or at the episode's end.
 4. Each planner decision is one transition whose reward is everything the planner earned
-   until its next decision (gamma_PL per decision; :class:`~.decisions.DecisionBuffer`).
+   until its next decision (gamma_PL per decision, or ``planner_step_gamma`` per executor
+   step it lasted; :class:`~.decisions.DecisionBuffer`).
    Once N_PL decisions per world have completed, a PPO update of the planner.
 
 The planner's update of an iteration runs on a second thread beside the executor's update
@@ -134,7 +135,7 @@ class PlexTrainer(Trainer):
         self.driver.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
         self._set_threads()
         self.turn_d0 = np.zeros(cfg.num_envs)
-        self.decisions = DecisionBuffer(cfg.num_envs)  # the planner's transitions
+        self.decisions = DecisionBuffer(cfg.num_envs, cfg.planner_step_gamma)  # the planner's transitions
 
     # ---------------------------------------------------------------- planner
     def _on_decision(self, d: Decision) -> None:
@@ -144,10 +145,10 @@ class PlexTrainer(Trainer):
         if self._learn_planner:
             out = d.out
             self.decisions.decide(d.rows, d.obs, out["stop"], out["raw_subgoal"], out["log_prob"], out["value"])
-            self._planner_rewards(d.result)
+            self._planner_rewards(d.result, executor_step=False)
 
-    def _planner_rewards(self, res) -> None:
-        self.decisions.rewards(res.rewards[:, PLANNER], res.terminated | res.truncated)
+    def _planner_rewards(self, res, executor_step: bool = True) -> None:
+        self.decisions.rewards(res.rewards[:, PLANNER], res.terminated | res.truncated, executor_step)
 
     def _count_episodes(self, res) -> None:
         for info, ret in zip(res.episode_infos, self.driver.episode_returns):

@@ -47,7 +47,7 @@ class PPOConfig:
     target_kl: float | None = None  # stop the epochs early once approx_kl exceeds this
 
 
-def compute_gae(rewards, values, dones, truncated, bootstrap_values, gamma: float, lam: float):
+def compute_gae(rewards, values, dones, truncated, bootstrap_values, gamma, lam: float):
     """GAE(lambda) advantages and returns, each (T, B) float32.
 
     Convention, for step t of env b (all inputs (T, B), arrays or tensors):
@@ -62,6 +62,8 @@ def compute_gae(rewards, values, dones, truncated, bootstrap_values, gamma: floa
     - The last row (t = T - 1) that is not done bootstraps from ``bootstrap_values[T-1]``
       = V(o_T), the observation after the rollout.
     ``bootstrap_values`` is only read at truncated steps and in the last row.
+    ``gamma`` is a number or (T, B): each step's own discount (a planner decision that
+    lasted k executor steps is discounted by gamma_step^k).
 
     delta_t = r_t + gamma * V_next_t - V(o_t);  A_t = delta_t + gamma * lam * (1 - done_t) * A_{t+1};
     returns = A + values.
@@ -71,12 +73,15 @@ def compute_gae(rewards, values, dones, truncated, bootstrap_values, gamma: floa
     ended = as_tensor(dones, dtype=torch.bool) | truncated
     next_values = torch.cat([values[1:], bootstrap_values[-1:]], dim=0)
     next_values = torch.where(truncated, bootstrap_values, torch.where(ended, 0.0, next_values))
+    scalar = isinstance(gamma, (int, float))
+    gamma = float(gamma) if scalar else as_tensor(gamma, dtype=torch.float32).expand_as(values)
     deltas = rewards + gamma * next_values - values
     not_ended = (~ended).float()
     advantages = torch.zeros_like(values)
     last = torch.zeros_like(values[0])
     for t in reversed(range(values.shape[0])):
-        last = deltas[t] + gamma * lam * not_ended[t] * last
+        g = gamma if scalar else gamma[t]
+        last = deltas[t] + g * lam * not_ended[t] * last
         advantages[t] = last
     return advantages, advantages + values
 
