@@ -20,7 +20,7 @@ one small wrapper of ours for the action mask:
 agent id (`[1, 0]` planner, `[0, 1]` executor), then the agent's own features, then zero
 padding up to L:
 
-* planner: the ego map flattened in (channel, row, column) order (2 x 32 x 32 in [0, 1]),
+* planner: the ego map flattened in (channel, row, column) order (6 x 32 x 32 in [0, 1]),
   then the goal vector (distance m, direction rad). The ELI is not included: it is off here.
 * executor: RGB scaled to [0, 1] and depth, downsampled to `image_size` x `image_size`
   (block mean when the resolution is a multiple of it, nearest pixel otherwise) and

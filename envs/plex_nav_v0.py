@@ -10,7 +10,7 @@ env = plex_nav_v0.env(resolution=128)
 | Agents | `possible_agents = ["planner", "executor"]` |
 | Turn order | planner, then the executor for up to `n_ex` actions, then the planner again |
 | Planner action | `Dict(stop=Discrete(2), subgoal=Box([0, -pi], [rho_max, pi]))` |
-| Planner observation | `Dict(ego_map=Box(0, 1, (2, 32, 32)), goal=Box((2,)), eli=Box((128,)))` |
+| Planner observation | `Dict(ego_map=Box(0, 1, (6, 32, 32)), goal=Box((2,)), eli=Box((128,)))` |
 | Executor action | `Dict(action=Discrete(4), eli=Box((128,)))` |
 | Executor observation | `Dict(rgb=Box(0, 255, (H, W, 3), uint8), depth=Box(0, 1, (H, W, 1)), subgoal=Box((2,)))` |
 | Render modes | `human` (a live window), `rgb_array` (top-down map, path, goal, current sub-goal) |
@@ -18,10 +18,10 @@ env = plex_nav_v0.env(resolution=128)
 
 Two cooperating agents navigate to a PointGoal in an indoor scene (the PLEX paper's
 hierarchy). The **planner** sees a 32x32 egocentric top-down map (0.5 m cells; channel 0
-obstacles, channel 1 explored free space; row 0 ahead of the agent, built only from depth
-and the noisy pose), the end goal as (distance m, direction rad) from GPS+compass, and
-the Executor Latent Information (ELI) that the executor sent with the last action of its
-previous turn. It either stops the episode (`stop=1`) or proposes a sub-goal (distance,
+obstacles, channel 1 explored free space, channels 2-5 the obstacles of each cell's four
+0.25 m quarters; row 0 ahead of the agent, built only from depth and the noisy pose),
+the end goal as (distance m, direction rad) from GPS+compass, and the Executor Latent
+Information (ELI) that the executor sent with the last action of its previous turn. It either stops the episode (`stop=1`) or proposes a sub-goal (distance,
 direction) relative to the agent; the sub-goal is then fixed in the world and moved to
 the nearest navigable point if needed. The **executor** sees RGB-D and the sub-goal
 vector (recomputed after every step) and acts: 0 STOP, 1 MOVE_FORWARD 0.25 m,

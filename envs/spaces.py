@@ -12,7 +12,7 @@ from gymnasium import spaces
 from .rules import ELI_DIM, NavConfig, PlexConfig
 from .sim.core import NUM_ACTIONS
 
-EGO_CHANNELS = 2  # obstacles, explored free space
+EGO_CHANNELS = 6  # obstacles, explored free space, the obstacles of each cell's four 0.25 m quarters
 EGO_SIZE = 32
 MAX_GOAL_DISTANCE = 100.0  # metres; bounds of the polar goal vectors
 

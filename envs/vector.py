@@ -129,7 +129,7 @@ class PointNavVectorEnv:
     (rad) of the agents whose episode ended in it, taken before the autoreset, in the
     order of ``infos`` (None if none ended): the returned 5-tuple is the gymnasium one.
 
-    ``egomap=True`` adds the planner's ``ego_map`` (N, 2, 32, 32) to the observations
+    ``egomap=True`` adds the planner's ``ego_map`` (N, 6, 32, 32) to the observations
     (PPO-GRU+map reads it); without it the worlds keep no ego maps.
     """
 

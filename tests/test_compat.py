@@ -22,7 +22,8 @@ from .env_helpers import SMALL, line_episode, planner_action, state_snapshot, as
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
 K = 33  # STOP + 4 distances x 8 directions
-L = 2 + 4 * 32 * 32 + 2  # one-hot id, executor RGB-D 32x32, sub-goal vector
+EGO = 6 * 32 * 32  # the planner's ego map, flattened
+L = 2 + EGO + 2  # one-hot id, the planner's ego map and goal vector (longer than the executor's RGB-D 32x32)
 
 
 # ---------------------------------------------------------------- PettingZoo's tests
@@ -109,9 +110,8 @@ def test_observation_layout():
     x, mask = o["observation"], o["action_mask"]
     assert x.dtype == np.float32 and x.shape == (L,)
     np.testing.assert_array_equal(x[:2], [1, 0])
-    np.testing.assert_array_equal(x[2:2 + 2048], native_p["ego_map"].ravel())
-    np.testing.assert_array_equal(x[2050:2052], native_p["goal"])
-    assert np.all(x[2052:] == 0)  # padding
+    np.testing.assert_array_equal(x[2:2 + EGO], native_p["ego_map"].ravel())
+    np.testing.assert_array_equal(x[2 + EGO:], native_p["goal"])
     np.testing.assert_array_equal(mask, np.ones(K, np.int8))
 
     env.step(5)  # a sub-goal: now the executor
@@ -125,7 +125,8 @@ def test_observation_layout():
     np.testing.assert_allclose(img[:3], rgb.transpose(2, 0, 1), atol=1e-6)
     depth = native_e["depth"].reshape(32, 2, 32, 2).mean(axis=(1, 3))
     np.testing.assert_allclose(img[3], depth, atol=1e-6)
-    np.testing.assert_array_equal(x[-2:], native_e["subgoal"])
+    np.testing.assert_array_equal(x[2 + 4096:2 + 4096 + 2], native_e["subgoal"])
+    assert np.all(x[2 + 4096 + 2:] == 0)  # padding
     np.testing.assert_array_equal(mask, np.r_[np.ones(4), np.zeros(K - 4)].astype(np.int8))
     assert env.observation_space("executor").contains(o)
 
@@ -134,8 +135,8 @@ def test_nearest_pixel_downsampling_and_options():
     env = plex_nav_v0.compat_env(resolution=48, num_scenes=4, image_size=20, subgoal_distances=(0.5, 1.5),
                                  subgoal_directions=4)
     assert env.action_space("planner").n == 1 + 2 * 4
-    # The planner's 2 + 2048 + 2 values are now the longer part; the executor's are padded.
-    assert env.observation_space("planner")["observation"].shape == (max(2 + 2048 + 2, 2 + 4 * 20 * 20 + 2),)
+    # The planner's 2 + EGO + 2 values are the longer part; the executor's are padded.
+    assert env.observation_space("planner")["observation"].shape == (max(2 + EGO + 2, 2 + 4 * 20 * 20 + 2),)
     env.reset(seed=0)
     env.step(3)
     native = env.native.observe("executor")
@@ -267,7 +268,7 @@ def test_pickle_round_trip():
         env.step(a)
         copy.step(a)
         assert copy.rewards == env.rewards
-    assert copy.observation_space("planner")["observation"].shape == (2 + 2048 + 2,)
+    assert copy.observation_space("planner")["observation"].shape == (2 + EGO + 2,)
 
 
 # ---------------------------------------------------------------- SuperSuit on the native env

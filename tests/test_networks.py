@@ -160,7 +160,7 @@ def test_recurrent_shapes(cls, memory, resolution):
 def test_planner_shapes():
     pl = Planner(ego_channels=3, channels=(8, 8), hidden=64)
     obs = pl.example_obs(5)
-    assert obs["ego_map"].shape == (5, 3, 32, 32)
+    assert obs["ego_map"].shape == (5, 6, 32, 32) and pl.convs[0].in_channels == 3  # the trunk reads the first 3
     lp, ent, v = pl.evaluate_actions(obs, torch.zeros(5), torch.zeros(5, 2))
     assert lp.shape == ent.shape == v.shape == (5,)
 

@@ -1,5 +1,6 @@
 """The planner's ego map (docs/spec.md section 2) seen from a known pose in a known room: channel 0
-obstacles, channel 1 explored floor, 32x32 cells of 0.5 m, row 0 ahead, column 0 left."""
+obstacles, channel 1 explored floor, 32x32 cells of 0.5 m, row 0 ahead, column 0 left;
+channels 2-5 the obstacles of each cell's quarters (64x64 cells of 0.25 m once unpacked)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from plex_ma.envs.sim import TURN_LEFT, TURN_RIGHT, BatchedSim, Scene
 
@@ -34,7 +36,7 @@ def obstacles(m: np.ndarray) -> set[tuple[int, int]]:
 def test_known_room_from_known_pose(R):
     sim = sim_at(ROOM, (0.0, 0.0), 0.0, resolution=R)
     m = sim.egomap()
-    assert m.shape == (1, 2, S, S) and m.dtype == np.float32
+    assert m.shape == (1, 6, S, S) and m.dtype == np.float32
     assert m.min() >= 0.0 and m.max() <= 1.0
     m = m[0]
     wall_row, _ = ego_cell(3.95, 0.0)  # the front wall's face, 3.95 m ahead
@@ -52,6 +54,47 @@ def test_known_room_from_known_pose(R):
     fwd = (S / 2 - rows - 0.5) * CELL
     left = (S / 2 - cols - 0.5) * CELL
     assert np.all(np.abs(left) <= fwd + CELL)  # within the 90 degree cone (one cell of slack)
+
+
+def fine_obstacles(m: np.ndarray) -> np.ndarray:
+    """The quarter cells' obstacles of ego maps (k, 6, S, S) unpacked to (k, 2S, 2S)."""
+    return torch.nn.functional.pixel_shuffle(torch.as_tensor(m[:, 2:6]), 2)[:, 0].numpy()
+
+
+def test_fine_channels_in_the_known_room():
+    """The quarter cells (0.25 m) hold the front wall's face (3.75-4 m ahead: fine row 16
+    across the view) and the box (2-2.5 m ahead, 0.5-1.5 m left: rows 22-23, columns
+    26-29), and no other cell; in this room, aligned with the grids, any quarter's obstacle
+    blocks its 0.5 m cell."""
+    m = sim_at(ROOM, (0.0, 0.0), 0.0, resolution=64).egomap()
+    f = fine_obstacles(m)[0]
+    rows, cols = np.nonzero(f)
+    assert set(rows.tolist()) == {16, 22, 23}
+    assert {(r, c) for r, c in zip(rows, cols) if r > 16} == {(r, c) for r in (22, 23) for c in range(26, 30)}
+    np.testing.assert_array_equal(f.reshape(S, 2, S, 2).max(axis=(1, 3)), m[0, 0])
+
+
+def test_a_narrow_door_closes_a_cell_and_stays_open_in_the_quarters():
+    """A 0.6 m door 2 m ahead, centred on the agent, half fills each of the two 0.5 m cells
+    it spans, so both read as wall (the door is closed on the 32 x 32 map); its two 0.25 m
+    quarter cells stay free. The value-iteration module's sub-goal for a goal 3 m ahead
+    goes through the door on the fine map and not on the coarse one."""
+    from plex_ma.networks.value_iteration import ValueIteration
+
+    walls = room_walls(-4.0, -4.0, 4.0, 4.0) + [(2.0, -4.0, 2.0, -0.3), (2.0, 0.3, 2.0, 4.0)]
+    m = sim_at(Scene("door", np.array(walls)), (0.0, 0.0), 0.0, resolution=64).egomap()
+    row = 12  # the wall's face, 2 m ahead, lies in the cell 1.5-2 m ahead
+    seen = slice(12, 20)  # its cells within the 90 degree view (2 m either side)
+    assert m[0, 0, row, seen].all()  # the door included: closed
+    f = fine_obstacles(m)[0]
+    door = [S - 1, S]  # the quarter cells 0-0.25 m either side of the centre line
+    assert not f[2 * row, door].any()
+    assert f[2 * row, 2 * seen.start:2 * seen.stop].sum() == 2 * (seen.stop - seen.start) - 2
+    ego, goal = torch.as_tensor(m), torch.tensor([[3.0, 0.0]])
+    _, fine = ValueIteration(fine=True)(ego, goal)
+    _, coarse = ValueIteration()(ego, goal)
+    assert abs(fine[0, 1]) < 0.15 and fine[0, 0] > 1.5  # straight ahead, through the door
+    assert abs(coarse[0, 1]) > 0.3  # round the closed door
 
 
 def test_turning_left_90_degrees_rotates_the_map():
@@ -83,10 +126,13 @@ def test_crop_rotates_with_the_heading_alone():
         sim.step(np.array([a]))
     h = float(sim.est_pose[0, 2])
     sim.est_pose[0, 2] = 0.0
-    base = sim.egomap()[0]
+    base = sim.egomap()
     for k in (1, 2, 3):
         sim.est_pose[0, 2] = k * math.pi / 2
-        np.testing.assert_array_equal(sim.egomap()[0], np.rot90(base, k=-k, axes=(1, 2)))
+        m = sim.egomap()
+        np.testing.assert_array_equal(m[0, :2], np.rot90(base[0, :2], k=-k, axes=(1, 2)))
+        # the quarter cells turn with the map they unpack to
+        np.testing.assert_array_equal(fine_obstacles(m)[0], np.rot90(fine_obstacles(base)[0], k=-k))
     sim.est_pose[0, 2] = h
 
 

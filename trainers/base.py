@@ -32,7 +32,7 @@ from .ppo import PPOConfig
 
 CHECKPOINT_FORMAT = 1
 # Config fields added after checkpoints were first written, with the value older ones had.
-LEGACY_CONFIG = {"planner_value_iteration": False}
+LEGACY_CONFIG = {"planner_value_iteration": False, "planner_fine_map": False}
 # Retired config fields and the one value the current networks build: a checkpoint saved
 # with another names the field in its error
 RETIRED_CONFIG = {"executor_goal_skip": True}
@@ -40,7 +40,7 @@ RETIRED_CONFIG = {"executor_goal_skip": True}
 
 # The settings that shape the networks: a checkpoint loads only into a run with the same.
 ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden")
-PLEX_ARCH_KEYS = ("planner_value_iteration",)  # ... and for the methods that read the ego map (the planner's)
+PLEX_ARCH_KEYS = ("planner_value_iteration", "planner_fine_map")  # ... and for the methods that read the ego map (the planner's)
 NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
 
 
@@ -76,7 +76,7 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     if cfg.method.startswith("plex"):
         planner = Planner(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max, stop_distance=cfg.env.success_distance,
                           subgoal_radius=cfg.env.subgoal_radius, init_std=cfg.planner_subgoal_std,
-                          value_iteration=cfg.planner_value_iteration)
+                          value_iteration=cfg.planner_value_iteration, fine_map=cfg.planner_fine_map)
         return {"planner": planner,
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden,
@@ -84,7 +84,8 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     flat = dict(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                 gru_hidden=cfg.executor_hidden)
     if cfg.method == "ppo-gru-map":
-        return {"policy": FlatMapPolicy(value_iteration=cfg.planner_value_iteration, **flat)}
+        return {"policy": FlatMapPolicy(value_iteration=cfg.planner_value_iteration, fine_map=cfg.planner_fine_map,
+                                        **flat)}
     return {"policy": FlatPolicy(**flat)}
 
 

@@ -106,13 +106,14 @@ class MapPlannerPolicy:
 
 class ValueIterationPlannerPolicy:
     """The value-iteration module's sub-goal alone (:class:`~plex_ma.networks.ValueIteration`,
-    which has no weights, so the same in every run): the prior the learned planner offsets.
-    It reads the planner's observations only and stops as the map planner does."""
+    which has no weights): the prior the learned planner offsets, planned on the fine map
+    unless ``fine_map`` is False (a planner network's own module when one is given). It
+    reads the planner's observations only and stops as the map planner does."""
 
     learns, ground_truth, name = False, False, "vin"
 
-    def __init__(self, env: PlexVectorEnv | None = None, stop_distance: float = STOP_DISTANCE):
-        self.vin, self.stop_distance = ValueIteration(), stop_distance
+    def __init__(self, env: PlexVectorEnv | None = None, stop_distance: float = STOP_DISTANCE, fine_map: bool = True):
+        self.vin, self.stop_distance = ValueIteration(fine=fine_map), stop_distance
 
     def decide(self, obs: dict, rows: np.ndarray) -> dict:
         goal = torch.as_tensor(np.asarray(obs["goal"], np.float32))
@@ -284,7 +285,8 @@ def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = 
     if kind in ("map", "map-los"):
         return MapPlannerPolicy(env, line_of_sight=kind == "map-los")
     if kind == "vin":
-        return ValueIterationPlannerPolicy(env)
+        vin = getattr(net, "vin", None)
+        return ValueIterationPlannerPolicy(env, fine_map=True if vin is None else vin.fine)
     raise ValueError(f"unknown planner {kind!r}; choose one of {', '.join(PLANNER_KINDS)}")
 
 

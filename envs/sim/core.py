@@ -20,7 +20,8 @@ Sensors:
   (obstacles are sticky: the highest point wins), points below 0.1 m mark explored
   floor, and points above 1.5 m (ceiling, lintels) are dropped. The planner's view is a
   crop of ``ego_size`` x ``ego_size`` cells of 0.5 m around the agent, rotated so that
-  row 0 is straight ahead: channel 0 obstacles, channel 1 explored free space.
+  row 0 is straight ahead: channel 0 obstacles, channel 1 explored free space, channels
+  2-5 the obstacles of each cell's four 0.25 m quarters (the map at twice the resolution).
 """
 
 from __future__ import annotations
@@ -86,6 +87,7 @@ class BatchedSim:
     turn_angle = math.radians(10.0)
     ego_size = 32
     ego_cell = 0.5
+    ego_channels = 6  # obstacles, explored floor, the obstacles of each cell's four quarters
     amap_cell = 0.25
     amap_size = 288  # 72 m around the episode start: covers any walk in a 30 m house
 
@@ -218,11 +220,12 @@ class BatchedSim:
 
     # ---------------------------------------------------------------- queries
     def egomap(self, rows: np.ndarray | None = None) -> np.ndarray:
-        """Planner ego maps (len(rows), 2, 32, 32) float32 in [0, 1] from the noisy pose."""
+        """Planner ego maps (len(rows), 6, 32, 32) float32 in [0, 1] from the noisy pose
+        (channels: :func:`~.kernels.egomap_crop`)."""
         if not self.use_egomap:
             raise RuntimeError("this simulator was built with egomap=False")
         rows = np.arange(self.n) if rows is None else np.asarray(rows, np.int64).reshape(-1)
-        out = np.zeros((len(rows), 2, self.ego_size, self.ego_size), np.float32)
+        out = np.zeros((len(rows), self.ego_channels, self.ego_size, self.ego_size), np.float32)
         K.pick(K.egomap_crop, len(rows))(self.amap, self.amap_origin, self.amap_cell, self.est_pose, self.ego_cell,
                                          out, rows)
         return out

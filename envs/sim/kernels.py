@@ -795,14 +795,30 @@ def egomap_update(depth, est_pose, map_origin, amap, map_cs, stride, hfov, max_d
                     amap[wi, r, c] |= EGO_EXPLORED
 
 
+@njit(cache=True, inline="always")
+def _ego_sample(amap, wi, map_origin, map_cs, x0, y0, fx, fy, fwd, left):
+    """The allocentric map's flags at the point ``fwd`` m ahead and ``left`` m to the left of
+    the pose (x0, y0, heading (fx, fy)); 0 outside the map."""
+    M = amap.shape[1]
+    wx = x0 + fwd * fx - left * fy
+    wy = y0 + fwd * fy + left * fx
+    c = int(math.floor((wx - map_origin[wi, 0]) / map_cs))
+    r = int(math.floor((wy - map_origin[wi, 1]) / map_cs))
+    if r < 0 or r >= M or c < 0 or c >= M:
+        return 0
+    return amap[wi, r, c]
+
+
 @threaded()
 def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
-    """Crop ``out[k]`` (2, S, S) for world ``rows[k]``: channel 0 obstacles, channel 1
+    """Crop ``out[k]`` (C, S, S) for world ``rows[k]``: channel 0 obstacles, channel 1
     explored free space; row 0 is ahead of the agent, column 0 to its left. Each cell samples
     4 x 4 points: channel 0 is 1 when at least a quarter of them are obstacles (so a door
-    narrower than two cells stays open), channel 1 the fraction that is explored floor."""
+    narrower than two cells stays open), channel 1 the fraction that is explored floor. With
+    C = 6, channels 2-5 apply channel 0's rule to each quarter of the cell (4 x 4 points of
+    its own), in the order (front left, front right, back left, back right): the obstacles
+    at twice the resolution, as ``torch.nn.functional.pixel_shuffle`` unpacks them."""
     S = out.shape[2]
-    M = amap.shape[1]
     sub = 4
     for k in prange(rows.shape[0]):
         wi = rows[k]
@@ -819,13 +835,7 @@ def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
                     for sb in range(sub):
                         fwd = (S / 2.0 - a - (sa + 0.5) / sub) * ego_cs
                         left = (S / 2.0 - b - (sb + 0.5) / sub) * ego_cs
-                        wx = x0 + fwd * fx - left * fy
-                        wy = y0 + fwd * fy + left * fx
-                        c = int(math.floor((wx - map_origin[wi, 0]) / map_cs))
-                        r = int(math.floor((wy - map_origin[wi, 1]) / map_cs))
-                        if r < 0 or r >= M or c < 0 or c >= M:
-                            continue
-                        v = amap[wi, r, c]
+                        v = _ego_sample(amap, wi, map_origin, map_cs, x0, y0, fx, fy, fwd, left)
                         if v & EGO_OBSTACLE:
                             obs += 1.0
                         elif v & EGO_EXPLORED:
@@ -833,3 +843,14 @@ def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
                 blocked = obs * 4 >= sub * sub
                 out[k, 0, a, b] = 1.0 if blocked else 0.0
                 out[k, 1, a, b] = free
+                if out.shape[1] < 6:
+                    continue
+                for q in range(4):
+                    qobs = 0.0
+                    for sa in range(sub):
+                        for sb in range(sub):
+                            fwd = (S / 2.0 - a - (q // 2 + (sa + 0.5) / sub) / 2) * ego_cs
+                            left = (S / 2.0 - b - (q % 2 + (sb + 0.5) / sub) / 2) * ego_cs
+                            if _ego_sample(amap, wi, map_origin, map_cs, x0, y0, fx, fy, fwd, left) & EGO_OBSTACLE:
+                                qobs += 1.0
+                    out[k, 2 + q, a, b] = 1.0 if qobs * 4 >= sub * sub else 0.0

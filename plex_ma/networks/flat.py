@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import torch
 
+from plex_ma.envs.spaces import EGO_CHANNELS, EGO_SIZE
 from plex_ma.networks.common import as_tensor
 from plex_ma.networks.executor import Executor
 from plex_ma.networks.planner import MapEncoder
@@ -44,8 +45,8 @@ class FlatMapPolicy(FlatPolicy):
     reads_ego_map = True
 
     def __init__(self, memory: str = "gru", resolution: int = 128, ego_channels: int = 2,
-                 value_iteration: bool = False, **kw):
-        encoder = MapEncoder(ego_channels, value_iteration=value_iteration)
+                 value_iteration: bool = False, fine_map: bool = False, **kw):
+        encoder = MapEncoder(ego_channels, value_iteration=value_iteration, fine_map=fine_map)
         super().__init__(memory=memory, resolution=resolution, extra_inputs=encoder.map_dim + encoder.vin_dim, **kw)
         self.map = encoder
 
@@ -59,7 +60,6 @@ class FlatMapPolicy(FlatPolicy):
         return torch.cat([x, feat.view(*lead, -1)], dim=-1), goal
 
     def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
-        c = self.map.convs[0].in_channels
         # mostly unseen cells, some free and some obstacles, as an ego map reads
         return {**super().example_obs(batch, generator),
-                "ego_map": (torch.rand(batch, c, 32, 32, generator=generator) < 0.2).float()}
+                "ego_map": (torch.rand(batch, EGO_CHANNELS, EGO_SIZE, EGO_SIZE, generator=generator) < 0.2).float()}

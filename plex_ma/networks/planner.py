@@ -12,6 +12,7 @@ from torch import nn
 from torch.distributions import Categorical, Normal
 
 from plex_ma.envs.rules import ELI_DIM
+from plex_ma.envs.spaces import EGO_CHANNELS, EGO_SIZE
 from plex_ma.networks.common import _conv_out_dim, as_tensor, layer_init, wrap_angle
 from plex_ma.networks.value_iteration import ValueIteration
 
@@ -48,15 +49,15 @@ class MapEncoder(nn.Module):
     """The planner's reading of the ego map, one definition for the PLEX planner (a subclass)
     and the flat PPO-GRU+map policy (:class:`FlatMapPolicy`, which holds one):
 
-    - ``convs``: the paper's trunk, conv 4x4/2 and conv 3x3/1 (ReLU), flattened
-      (``map_dim`` features);
+    - ``convs``: the paper's trunk, conv 4x4/2 and conv 3x3/1 (ReLU) over the map's first
+      ``ego_channels`` channels (obstacles, explored floor), flattened (``map_dim`` features);
     - ``vin`` (with ``value_iteration``, else None): a :class:`ValueIteration` module over
-      the map and the goal (``vin_dim`` features, which end with its sub-goal as (distance /
-      ``SUBGOAL_REACH``, cos, sin)).
+      the map (with ``fine_map``, its 0.25 m quarter cells) and the goal (``vin_dim``
+      features, which end with its sub-goal as (distance / ``SUBGOAL_REACH``, cos, sin)).
     """
 
     def __init__(self, ego_channels: int = 2, channels: tuple[int, int] = (32, 64), map_size: int = 32,
-                 value_iteration: bool = False):
+                 value_iteration: bool = False, fine_map: bool = False):
         super().__init__()
         self.convs = nn.Sequential(
             layer_init(nn.Conv2d(ego_channels, channels[0], 4, stride=2)), nn.ReLU(),
@@ -64,7 +65,7 @@ class MapEncoder(nn.Module):
             nn.Flatten(),
         )
         self.map_dim = _conv_out_dim(self.convs, (ego_channels, map_size, map_size))
-        self.vin = ValueIteration(map_size) if value_iteration else None
+        self.vin = ValueIteration(fine=fine_map) if value_iteration else None
         self.vin_dim = self.vin.out_dim if self.vin is not None else 0
 
     def read_map(self, ego: torch.Tensor, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None,
@@ -72,9 +73,10 @@ class MapEncoder(nn.Module):
         """ego (B, C, S, S), goal (B, 2) = (distance m, direction rad) -> the trunk's features
         (B, map_dim), the value-iteration features (B, vin_dim) and its sub-goal (B, 2) =
         (distance m, direction rad) (both None without the module)."""
+        trunk = self.convs(ego[:, :self.convs[0].in_channels])
         if self.vin is None:
-            return self.convs(ego), None, None
-        return self.convs(ego), *self.vin(ego, goal)
+            return trunk, None, None
+        return trunk, *self.vin(ego, goal)
 
     def forward(self, ego: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
         """(B, map_dim + vin_dim): the trunk's and the value-iteration module's features."""
@@ -127,9 +129,10 @@ class Planner(MapEncoder):
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
                  map_size: int = 32, init_std: float = 0.5, prior_distance: float = 1.5, head_hidden: int = 256,
-                 value_iteration: bool = False, stop_distance: float = 0.2, subgoal_radius: float | None = None):
+                 value_iteration: bool = False, stop_distance: float = 0.2, subgoal_radius: float | None = None,
+                 fine_map: bool = False):
         # ``convs`` and ``vin`` (the map reading) keep their names: checkpoints key on them
-        super().__init__(ego_channels, channels, map_size, value_iteration)
+        super().__init__(ego_channels, channels, map_size, value_iteration, fine_map)
         self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
         self.prior_distance = min(prior_distance, rho_max)
         # no sub-goal within the executor's radius (None: any distance)
@@ -223,7 +226,6 @@ class Planner(MapEncoder):
         return log_prob, entropy, value
 
     def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
-        c, s = self.convs[0].in_channels, 32
-        return {"ego_map": torch.rand(batch, c, s, s, generator=generator),
+        return {"ego_map": torch.rand(batch, EGO_CHANNELS, EGO_SIZE, EGO_SIZE, generator=generator),
                 "goal": torch.rand(batch, 2, generator=generator) * torch.tensor([10.0, 2 * math.pi]) - torch.tensor([0.0, math.pi]),
                 "eli": torch.randn(batch, self.eli_dim, generator=generator)}

@@ -17,6 +17,7 @@ from torch.nn import functional as F
 from plex_ma.envs.sim.core import BatchedSim
 
 EGO_CELL = BatchedSim.ego_cell  # m: the ego map's cell size (32 x 32 cells, the agent at cell (16, 16))
+FINE_ITERATIONS = 80  # Bellman updates on the fine map (64 x 64 cells of 0.25 m)
 SUBGOAL_REACH = 2.0  # m: the value-iteration read-out looks for its sub-goal within this distance
 OBSTACLE_LOGIT, FREE_LOGIT = 100.0, -4.0  # a cell's cost: 1 + softplus(OBSTACLE_LOGIT x obstacle + FREE_LOGIT)
 BELLMAN_UNREACHED = 1e4  # the distance of cells no path has reached (and of the map's outside)
@@ -31,6 +32,9 @@ class ValueIteration(nn.Module):
       free and unseen cells (unseen cells count as free) and 97 on cells seen as obstacles.
       It was a learned 3x3 convolution started at these values; training left it where it
       started (docs/results.md), so it is fixed and no gradient flows through the module.
+    - The map it plans on: the ego map's obstacle channel (32 x 32 cells of 0.5 m), or with
+      ``fine`` its quarter cells' (channels 2-5 unpacked to 64 x 64 cells of 0.25 m, where
+      a narrow door that closes a 0.5 m cell stays open; ``FINE_ITERATIONS`` updates).
     - ``iterations`` Bellman updates of the distance to the goal over 8 neighbours (a
       diagonal step costs sqrt 2 x the largest cost of the cell and the two cells beside
       the step, so paths do not cut a wall's corner). The goal is its cell, or, beyond the
@@ -41,15 +45,18 @@ class ValueIteration(nn.Module):
       its cell; the agent's own cell is never chosen).
     """
 
-    def __init__(self, map_size: int = 32, iterations: int = 40):
+    def __init__(self, iterations: int = 40, fine: bool = False):
         super().__init__()
-        self.s, self.iterations = map_size, iterations
+        self.fine = fine
+        self.cell = EGO_CELL / 2 if fine else EGO_CELL
+        self.s = 2 * BatchedSim.ego_size if fine else BatchedSim.ego_size
+        self.iterations = FINE_ITERATIONS if fine else iterations
         # checkpoints saved while the cost was a learned convolution hold its weights: ignored
         self._register_load_state_dict_pre_hook(_drop_learned_cost)
-        s, r = map_size, int(SUBGOAL_REACH / EGO_CELL)
+        s, r = self.s, int(SUBGOAL_REACH / self.cell)
         self.reach_cells = r
         rows = torch.arange(s, dtype=torch.float32)
-        fwd = (s / 2 - rows - 0.5) * EGO_CELL  # the cell centres' offsets from the agent (m)
+        fwd = (s / 2 - rows - 0.5) * self.cell  # the cell centres' offsets from the agent (m)
         self.register_buffer("centre_fwd", fwd[:, None].expand(s, s).clone(), persistent=False)
         self.register_buffer("centre_left", fwd[None, :].expand(s, s).clone(), persistent=False)
         lo, hi = s // 2 - r, s // 2 + r + 1
@@ -64,21 +71,23 @@ class ValueIteration(nn.Module):
     def goal_cell(self, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(row, column, inside) of each goal (B, 2): its cell, or where the straight line to it
         leaves the map; ``inside`` where the goal itself lies on the map."""
-        s = self.s
+        s, cell = self.s, self.cell
         fwd, left = goal[:, 0] * torch.cos(goal[:, 1]), goal[:, 0] * torch.sin(goal[:, 1])
-        lim = (s / 2 - 1) * EGO_CELL
+        lim = (s / 2 - 1) * cell
         m = torch.maximum(fwd.abs(), left.abs())
         inside = m <= lim
         k = torch.where(inside, torch.ones_like(m), lim / m.clamp(min=1e-6))
-        a = torch.floor(s / 2 - fwd * k / EGO_CELL).long().clamp(0, s - 1)
-        b = torch.floor(s / 2 - left * k / EGO_CELL).long().clamp(0, s - 1)
+        a = torch.floor(s / 2 - fwd * k / cell).long().clamp(0, s - 1)
+        b = torch.floor(s / 2 - left * k / cell).long().clamp(0, s - 1)
         return a, b, inside
 
     @torch.no_grad()
     def forward(self, ego: torch.Tensor, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(features (B, out_dim), sub-goal (B, 2) = (distance m, direction rad)); no gradient."""
+        """ego maps (B, C, 32, 32) and goals (B, 2) -> (features (B, out_dim), sub-goal (B, 2) =
+        (distance m, direction rad)); no gradient."""
         B, s = ego.shape[0], self.s
-        cost = 1.0 + F.softplus(OBSTACLE_LOGIT * ego[:, 0] + FREE_LOGIT)
+        obstacles = F.pixel_shuffle(ego[:, 2:6], 2)[:, 0] if self.fine else ego[:, 0]
+        cost = 1.0 + F.softplus(OBSTACLE_LOGIT * obstacles + FREE_LOGIT)
         a, b, inside = self.goal_cell(goal)
         at_goal = torch.zeros(B, s, s, dtype=torch.bool, device=ego.device)
         at_goal[torch.arange(B, device=ego.device), a, b] = True
@@ -97,7 +106,7 @@ class ValueIteration(nn.Module):
         d = to_goal[:, lo:hi, lo:hi][:, self.disc]  # (B, cells within reach)
         # the sub-goal: the cell nearest the goal among those the agent reaches within
         # SUBGOAL_REACH (cells beyond that reach are penalised, not cut off)
-        score = d + 10.0 * F.relu(from_agent - SUBGOAL_REACH / EGO_CELL) + 1e4 * self.own_cell
+        score = d + 10.0 * F.relu(from_agent - SUBGOAL_REACH / self.cell) + 1e4 * self.own_cell
         least = score.min(dim=1, keepdim=True).values
         fwd = self.centre_fwd[lo:hi, lo:hi][self.disc].expand_as(d)
         left = self.centre_left[lo:hi, lo:hi][self.disc].expand_as(d)
@@ -110,7 +119,9 @@ class ValueIteration(nn.Module):
         best = score.argmin(dim=1, keepdim=True)  # ties: the first in row-major order
         pf, pl = fwd.gather(1, best)[:, 0], left.gather(1, best)[:, 0]
         rho, theta = torch.hypot(pf, pl), torch.atan2(pl, pf)
-        feats = torch.cat([((score - least) / 8).clamp(max=2.0), (least / 32).clamp(max=2.0), rho[:, None] / SUBGOAL_REACH,
+        # distances in metres / 4 (near the agent) and / 16 (the nearest to the goal)
+        feats = torch.cat([((score - least) * (self.cell / 4)).clamp(max=2.0), (least * (self.cell / 16)).clamp(max=2.0),
+                           rho[:, None] / SUBGOAL_REACH,
                            torch.cos(theta)[:, None], torch.sin(theta)[:, None]], dim=1)
         return feats, torch.stack([rho, theta], dim=1)
 
