@@ -106,13 +106,13 @@ class MapPlannerPolicy:
 
 class ValueIterationPlannerPolicy:
     """The value-iteration module's sub-goal alone (:class:`~plex_ma.networks.ValueIteration`,
-    which has no weights): the prior the learned planner offsets, planned on the fine map
-    unless ``fine_map`` is False (a planner network's own module when one is given). It
-    reads the planner's observations only and stops as the map planner does."""
+    which has no weights): the prior the learned planner offsets, on the 0.5 m cells or with
+    ``fine_map`` the 0.25 m quarter cells (as a given planner network's own module does).
+    It reads the planner's observations only and stops as the map planner does."""
 
     learns, ground_truth, name = False, False, "vin"
 
-    def __init__(self, env: PlexVectorEnv | None = None, stop_distance: float = STOP_DISTANCE, fine_map: bool = True):
+    def __init__(self, env: PlexVectorEnv | None = None, stop_distance: float = STOP_DISTANCE, fine_map: bool = False):
         self.vin, self.stop_distance = ValueIteration(fine=fine_map), stop_distance
 
     def decide(self, obs: dict, rows: np.ndarray) -> dict:
@@ -286,7 +286,7 @@ def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = 
         return MapPlannerPolicy(env, line_of_sight=kind == "map-los")
     if kind == "vin":
         vin = getattr(net, "vin", None)
-        return ValueIterationPlannerPolicy(env, fine_map=True if vin is None else vin.fine)
+        return ValueIterationPlannerPolicy(env, fine_map=vin is not None and vin.fine)
     raise ValueError(f"unknown planner {kind!r}; choose one of {', '.join(PLANNER_KINDS)}")
 
 
