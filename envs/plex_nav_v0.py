@@ -21,8 +21,9 @@ hierarchy). The **planner** sees a 32x32 egocentric top-down map (0.5 m cells; c
 obstacles, channel 1 explored free space, channels 2-5 the obstacles of each cell's four
 0.25 m quarters; row 0 ahead of the agent, built only from depth and the noisy pose),
 the end goal as (distance m, direction rad) from GPS+compass, and the Executor Latent
-Information (ELI) that the executor sent with the last action of its previous turn. It either stops the episode (`stop=1`) or proposes a sub-goal (distance,
-direction) relative to the agent; the sub-goal is then fixed in the world and moved to
+Information (ELI) that the executor sent with the last action of its previous turn. It
+either stops the episode (`stop=1`) or proposes a sub-goal (distance, direction)
+relative to the agent; the sub-goal is then fixed in the world and moved to
 the nearest navigable point if needed. The **executor** sees RGB-D and the sub-goal
 vector (recomputed after every step) and acts: 0 STOP, 1 MOVE_FORWARD 0.25 m,
 2 TURN_LEFT 10 deg, 3 TURN_RIGHT 10 deg, sending a 128-value ELI with every action. Its
