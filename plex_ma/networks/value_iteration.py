@@ -17,7 +17,7 @@ from torch.nn import functional as F
 from plex_ma.envs.sim.core import BatchedSim
 
 EGO_CELL = BatchedSim.ego_cell  # m: the ego map's cell size (32 x 32 cells, the agent at cell (16, 16))
-FINE_ITERATIONS = 80  # Bellman updates on the fine map (64 x 64 cells of 0.25 m)
+ITERATIONS = {False: 40, True: 80}  # Bellman updates on the 32 x 32 map and on the fine 64 x 64 one
 SUBGOAL_REACH = 2.0  # m: the value-iteration read-out looks for its sub-goal within this distance
 OBSTACLE_LOGIT, FREE_LOGIT = 100.0, -4.0  # a cell's cost: 1 + softplus(OBSTACLE_LOGIT x obstacle + FREE_LOGIT)
 BELLMAN_UNREACHED = 1e4  # the distance of cells no path has reached (and of the map's outside)
@@ -34,8 +34,8 @@ class ValueIteration(nn.Module):
       started (docs/results.md), so it is fixed and no gradient flows through the module.
     - The map it plans on: the ego map's obstacle channel (32 x 32 cells of 0.5 m), or with
       ``fine`` its quarter cells' (channels 2-5 unpacked to 64 x 64 cells of 0.25 m, where
-      a narrow door that closes a 0.5 m cell stays open; ``FINE_ITERATIONS`` updates).
-    - ``iterations`` Bellman updates of the distance to the goal over 8 neighbours (a
+      a narrow door that closes a 0.5 m cell stays open).
+    - ``iterations`` Bellman updates (default ``ITERATIONS``: 40, or 80 on the fine map) of the distance to the goal over 8 neighbours (a
       diagonal step costs sqrt 2 x the largest cost of the cell and the two cells beside
       the step, so paths do not cut a wall's corner). The goal is its cell, or, beyond the
       map, the cell where the straight line to it leaves the map (:func:`bellman`).
@@ -45,12 +45,12 @@ class ValueIteration(nn.Module):
       its cell; the agent's own cell is never chosen).
     """
 
-    def __init__(self, iterations: int = 40, fine: bool = False):
+    def __init__(self, fine: bool = False, iterations: int | None = None):
         super().__init__()
         self.fine = fine
         self.cell = EGO_CELL / 2 if fine else EGO_CELL
         self.s = 2 * BatchedSim.ego_size if fine else BatchedSim.ego_size
-        self.iterations = FINE_ITERATIONS if fine else iterations
+        self.iterations = ITERATIONS[fine] if iterations is None else iterations
         # checkpoints saved while the cost was a learned convolution hold its weights: ignored
         self._register_load_state_dict_pre_hook(_drop_learned_cost)
         s, r = self.s, int(SUBGOAL_REACH / self.cell)
