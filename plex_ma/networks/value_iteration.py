@@ -35,8 +35,8 @@ class ValueIteration(nn.Module):
     - The map it plans on: the ego map's obstacle channel (32 x 32 cells of 0.5 m), or with
       ``fine`` its quarter cells' (channels 2-5 unpacked to 64 x 64 cells of 0.25 m, where
       a narrow door that closes a 0.5 m cell stays open).
-    - ``iterations`` Bellman updates (default ``ITERATIONS``: 40, or 80 on the fine map) of the distance to the goal over 8 neighbours (a
-      diagonal step costs sqrt 2 x the largest cost of the cell and the two cells beside
+    - ``iterations`` Bellman updates (default ``ITERATIONS``: 40, or 80 on the fine map) of
+      the distance to the goal over 8 neighbours (a diagonal step costs sqrt 2 x the largest cost of the cell and the two cells beside
       the step, so paths do not cut a wall's corner). The goal is its cell, or, beyond the
       map, the cell where the straight line to it leaves the map (:func:`bellman`).
     - Read-out (:meth:`forward`): the distance field within ``SUBGOAL_REACH`` of the agent
