@@ -24,7 +24,7 @@ from plex_ma.envs.rules import PlexConfig, make_config
 
 # Where the trainer's env defaults differ from the env's own (the env's are the paper's, docs/spec.md).
 TRAIN_ENV = {"resolution": 48, "n_ex": 18, "subgoal_radius": 0.2, "executor_stop_penalty": -0.5,
-             "executor_collision_reward": -0.05}
+             "executor_collision_reward": -0.15}
 Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt", "ppo-gru-map"]
 Preset = Literal["smoke", "cpu", "paper"]
 # --device of the CLIs that load networks (evaluate, record, bench train; train has the field below)
@@ -78,8 +78,8 @@ class TrainConfig:
     gamma_ex: float = 0.9
     """executor discount per executor step"""
     gamma_pl: float = 0.95
-    """planner discount per planner decision (unless --planner-step-gamma)"""
-    planner_step_gamma: float | None = None
+    """planner discount per planner decision (when --planner-step-gamma is None)"""
+    planner_step_gamma: float | None = 0.995
     """PLEX only: discount the planner per executor step instead (a decision that lasted k steps: this^k, as options in an SMDP); None: gamma_pl per decision"""
     gamma_flat: float = 0.99
     """flat baselines' discount per step"""
@@ -103,7 +103,7 @@ class TrainConfig:
     """PLEX only: start the executor's actor turning towards its sub-goal and moving when it faces it, with this many logits (None: no prior)"""
     planner_value_iteration: bool = True
     """PLEX only: the planner also reads a value-iteration module over its ego map (networks.ValueIteration; the paper's planner has none)"""
-    planner_fine_map: bool = False
+    planner_fine_map: bool = True
     """the value-iteration module plans on the ego map's 0.25 m quarter cells (64 x 64) instead of its 0.5 m cells"""
     executor_hidden: int = 128
     """GRU hidden size of the executor and the flat GRU policy (512 in the paper)"""
@@ -183,7 +183,8 @@ def paper_recipe(plex: bool) -> dict:
     return env | dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128, lr=2.5e-4,
                       planner_lr=None, anneal_lr=False, ppo_epochs=4, executor_hidden=512, planner_warmup_steps=0,
                       warmup_scenes=None, executor_stop_prior=None, executor_heading_prior=None,
-                      planner_value_iteration=False, planner_subgoal_std=0.5, torch_threads=0)
+                      planner_value_iteration=False, planner_fine_map=False, planner_step_gamma=None,
+                      planner_subgoal_std=0.5, torch_threads=0)
 
 
 # Each preset's recipe for a method (plex: a PLEX method): the values that differ from TrainConfig's defaults.
