@@ -32,7 +32,7 @@ from .ppo import PPOConfig
 
 CHECKPOINT_FORMAT = 1
 # Config fields added after checkpoints were first written, with the value older ones had.
-LEGACY_CONFIG = {"planner_value_iteration": False, "planner_fine_map": False}
+LEGACY_CONFIG = {"planner_value_iteration": False, "planner_fine_map": False, "planner_step_gamma": None}
 # Retired config fields and the one value the current networks build: a checkpoint saved
 # with another names the field in its error
 RETIRED_CONFIG = {"executor_goal_skip": True}
