@@ -107,12 +107,6 @@ class ValueIteration(nn.Module):
         # the sub-goal: the cell nearest the goal among those the agent reaches within
         # SUBGOAL_REACH (cells beyond that reach are penalised, not cut off)
         score = d + 10.0 * F.relu(from_agent - SUBGOAL_REACH / self.cell) + 1e4 * self.own_cell
-        import os
-        if os.environ.get("VINX") == "B":
-            blocked = (cost[:, lo:hi, lo:hi][:, self.disc] > 2.0)
-            rows_, cols_ = torch.nonzero(self.disc, as_tuple=True)
-            isg = (rows_[None] + lo == a[:, None]) & (cols_[None] + lo == b[:, None])
-            score = score + 1e4 * (blocked & ~isg)
         least = score.min(dim=1, keepdim=True).values
         fwd = self.centre_fwd[lo:hi, lo:hi][self.disc].expand_as(d)
         left = self.centre_left[lo:hi, lo:hi][self.disc].expand_as(d)
