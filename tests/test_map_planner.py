@@ -126,3 +126,19 @@ def test_value_iteration_planner_over_the_oracle_executor_navigates():
 
     out = main(["--planner", "vin", "--executor", "oracle", "--split", "test", "--episodes", "32", "--num-envs", "8"])
     assert out["success"] >= 0.8, out["success"]  # 1.0 at the time of writing
+
+
+def test_value_iteration_planner_without_a_network_plans_as_the_preset_does():
+    """``--planner vin`` takes a planner network's own module; without one, the cells the
+    config sets (the cpu preset's quarter cells, the paper's 0.5 m cells)."""
+    from plex_ma.config import preset_defaults
+    from plex_ma.trainers.driver import make_planner
+    from plex_ma.trainers.base import build_policies
+
+    assert make_planner("vin", None, fine_map=True).vin.fine
+    assert not make_planner("vin", None, fine_map=False).vin.fine
+    assert preset_defaults("cpu", "plex-gru").planner_fine_map  # what evaluation passes without a checkpoint
+    paper = build_policies(preset_defaults("paper", "plex-gru"))["planner"]
+    assert make_planner("vin", None, paper, fine_map=True).vin.fine  # no module of its own: the config's cells
+    cpu = build_policies(preset_defaults("cpu", "plex-gru"))["planner"]
+    assert make_planner("vin", None, cpu, fine_map=False).vin.fine  # the network's own module wins

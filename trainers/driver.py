@@ -270,10 +270,12 @@ PLANNER_KINDS = ("learned", "oracle", "random", "map", "map-los", "vin")
 EXECUTOR_KINDS = ("learned", "oracle", "random")
 
 
-def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None, **random_kw):
+def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = False, rng=None,
+                 fine_map: bool = False, **random_kw):
     """A planner policy by name: 'learned' (needs ``net``), 'random', 'oracle', 'map', 'map-los'
     (the map planner with sub-goals in a straight line over seen floor) or 'vin' (the
-    value-iteration module's sub-goal)."""
+    value-iteration module's sub-goal: on the cells of ``net``'s own module, else on the
+    quarter cells with ``fine_map``)."""
     if kind in ("learn", "learned"):
         if net is None:
             raise ValueError("a learned planner needs a network (a checkpoint)")
@@ -286,7 +288,7 @@ def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = 
         return MapPlannerPolicy(env, line_of_sight=kind == "map-los")
     if kind == "vin":
         vin = getattr(net, "vin", None)
-        return ValueIterationPlannerPolicy(env, fine_map=vin is not None and vin.fine)
+        return ValueIterationPlannerPolicy(env, fine_map=vin.fine if vin is not None else fine_map)
     raise ValueError(f"unknown planner {kind!r}; choose one of {', '.join(PLANNER_KINDS)}")
 
 

@@ -93,7 +93,8 @@ def _run_episodes(cfg, nets, split, episodes, scenes, num_envs, episodes_file, r
 
     if plex:
         pl_kw = {"stop_prob": 0.02} if planner == "random" else {}  # random episodes end now and then
-        drv = PlexDriver(env, make_planner(planner, env, nets.get("planner"), not sample, rng, **pl_kw),
+        drv = PlexDriver(env, make_planner(planner, env, nets.get("planner"), not sample, rng,
+                                              fine_map=cfg.planner_fine_map, **pl_kw),
                          make_executor(executor, env, nets.get("executor"), not sample, rng))
         drv.reset()
         if recorder is not None:
