@@ -160,22 +160,24 @@ def from_dict(d: dict) -> TrainConfig:
     return TrainConfig(**{k: v for k, v in d.items() if k in known}, env=make_config(PlexConfig, env))
 
 
-def smoke_recipe(plex: bool) -> dict:
+def smoke_recipe(method: str) -> dict:
     """The recommended recipe shrunk to finish in well under two minutes on two cores (no
     warm-up, so both agents learn; it still writes a checkpoint)."""
     return dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, num_scenes=4, planner_warmup_steps=0,
                 ppo_epochs=2, checkpoint_interval=5, keep_checkpoints=1)
 
 
-def cpu_recipe(plex: bool) -> dict:
+def cpu_recipe(method: str) -> dict:
     """The recommended recipe, TrainConfig's defaults: reward-only PLEX, a 40k-step executor
     warm-up under random sub-goals in an open room, then both agents by PPO on the reward
     alone. The flat baselines share its images, worlds and rollouts and take 4 PPO epochs
-    per update (their best in a sweep of epochs and learning rates: docs/results.md)."""
-    return {} if plex else dict(ppo_epochs=4)
+    per update. Each method's learning rate is the best of its sweep (docs/results.md)."""
+    if method.startswith("plex"):
+        return {}
+    return dict(ppo_epochs=4) | (dict(lr=3e-4) if method == "ppo-smt" else {})
 
 
-def paper_recipe(plex: bool) -> dict:
+def paper_recipe(method: str) -> dict:
     """The paper's settings: 256 px images, N_EX = 10, N_PL = 128, 30M steps, a 512-unit
     executor GRU at one constant learning rate, the env's own rewards, no warm-up and no
     value-iteration module or priors."""
@@ -187,7 +189,7 @@ def paper_recipe(plex: bool) -> dict:
                       planner_subgoal_std=0.5, torch_threads=0)
 
 
-# Each preset's recipe for a method (plex: a PLEX method): the values that differ from TrainConfig's defaults.
+# Each preset's recipe for a method: the values that differ from TrainConfig's defaults.
 PRESETS = {"smoke": smoke_recipe, "cpu": cpu_recipe, "paper": paper_recipe}
 
 
@@ -196,7 +198,7 @@ def preset_defaults(preset: str, method: str = "plex-gru") -> TrainConfig:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
     return replace(TrainConfig(), preset=preset, method=method, run_dir=f"runs/{method}-{preset}",
-                   **PRESETS[preset](method.startswith("plex")))
+                   **PRESETS[preset](method))
 
 
 def validate(cfg: TrainConfig) -> TrainConfig:

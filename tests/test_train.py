@@ -296,20 +296,22 @@ def test_defaults_are_the_cpu_recipe_and_flat_methods_get_theirs():
     """TrainConfig() is the recommended recipe: the cpu preset for PLEX adds nothing to it; the
     flat baselines get the cpu preset's flat departures; the paper preset restores the env's
     own (the paper's) settings; a flag on the command line still wins."""
-    plex, flat = PRESETS["cpu"](True), PRESETS["cpu"](False)
-    assert plex == {} and flat == {"ppo_epochs": 4}
+    assert PRESETS["cpu"]("plex-gru") == {} and PRESETS["cpu"]("ppo-gru") == {"ppo_epochs": 4}
+    assert PRESETS["cpu"]("ppo-smt") == {"ppo_epochs": 4, "lr": 3e-4}  # its own sweep's best
     for method in ("plex-gru", "plex-smt"):
         cfg = preset_defaults("cpu", method)
         assert replace(cfg, preset="cpu", method="plex-gru", run_dir=TrainConfig().run_dir) == TrainConfig(), method
     for method in ("ppo-gru", "ppo-smt", "ppo-gru-map"):
-        cfg = preset_defaults("cpu", method)
+        cfg, flat = preset_defaults("cpu", method), PRESETS["cpu"](method)
         assert all(setting(cfg, k) == v and v != setting(TrainConfig(), k) for k, v in flat.items()), method
     paper = preset_defaults("paper")
     assert (paper.env.n_ex, paper.env.subgoal_radius, paper.env.executor_stop_penalty) == (10, 0.5, 0.0)
     assert (paper.env.resolution, paper.n_pl, paper.executor_hidden, paper.planner_value_iteration) == (256, 128, 512, False)
     cfg = parse(["--preset", "cpu", "--resolution", "64", "--ppo-epochs", "4"])
     assert cfg.env.resolution == 64 and cfg.ppo_epochs == 4 and cfg.num_envs == TrainConfig().num_envs
-    assert parse(["--preset", "cpu", "--method", "ppo-gru"]).ppo_epochs == flat["ppo_epochs"]
+    assert parse(["--preset", "cpu", "--method", "ppo-gru"]).ppo_epochs == 4
+    assert parse(["--preset", "cpu", "--method", "ppo-smt"]).lr == 3e-4
+    assert parse(["--preset", "cpu", "--method", "ppo-smt", "--lr", "1e-3"]).lr == 1e-3
 
 
 def test_env_settings_are_train_flags_that_reach_the_env(tmp_path):
