@@ -132,8 +132,8 @@ def test_value_iteration_planner_without_a_network_plans_as_the_preset_does():
     """``--planner vin`` takes a planner network's own module; without one, the cells the
     config sets (the cpu preset's quarter cells, the paper's 0.5 m cells)."""
     from plex_ma.config import preset_defaults
-    from plex_ma.trainers.driver import make_planner
     from plex_ma.trainers.base import build_policies
+    from plex_ma.trainers.driver import make_planner
 
     assert make_planner("vin", None, fine_map=True).vin.fine
     assert not make_planner("vin", None, fine_map=False).vin.fine
