@@ -101,6 +101,8 @@ class TrainConfig:
     """PLEX only: start the executor's STOP at p = 0.5 this many metres from its sub-goal, rising nearer and vanishing farther (a skip from the sub-goal distance; None: no skip)"""
     executor_heading_prior: float | None = 3.0
     """PLEX only: start the executor's actor turning towards its sub-goal and moving when it faces it, with this many logits (None: no prior)"""
+    executor_no_reversal: bool = True
+    """the executor (and the flat policies, which share its network) never undoes its previous turn within a sub-goal (or episode): no RIGHT right after LEFT, nor LEFT after RIGHT"""
     planner_value_iteration: bool = True
     """PLEX only: the planner also reads a value-iteration module over its ego map (networks.ValueIteration; the paper's planner has none)"""
     planner_fine_map: bool = True
@@ -184,7 +186,7 @@ def paper_recipe(method: str) -> dict:
     env = {f.name: f.default for f in dataclasses.fields(PlexConfig) if f.name in TRAIN_ENV}
     return env | dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128, lr=2.5e-4,
                       planner_lr=None, anneal_lr=False, ppo_epochs=4, executor_hidden=512, planner_warmup_steps=0,
-                      warmup_scenes=None, executor_stop_prior=None, executor_heading_prior=None,
+                      warmup_scenes=None, executor_stop_prior=None, executor_heading_prior=None, executor_no_reversal=False,
                       planner_value_iteration=False, planner_fine_map=False, planner_step_gamma=None,
                       planner_subgoal_std=0.5, torch_threads=0)
 

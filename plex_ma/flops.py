@@ -25,10 +25,11 @@ def model_flops_per_step(model: torch.nn.Module, batch: int = 1, by_module: bool
     counter = FlopCounterMode(display=False)
     if hasattr(model, "initial_state"):
         state = model.initial_state(batch)
-        if state.ndim == 3:  # SMT: (B, capacity, dim + 1), last channel = slot filled
-            n = state.shape[1] if memory_filled is None else memory_filled
+        memory = model.split_state(state)[0]  # a view of the memory's part
+        if memory.ndim == 3:  # SMT: (B, capacity, dim + 1), last channel = slot filled
+            n = memory.shape[1] if memory_filled is None else memory_filled
             if n > 0:
-                state[:, -n:, -1] = 1.0
+                memory[:, -n:, -1] = 1.0
         with counter:
             model.act(obs, state, torch.zeros(batch, dtype=torch.bool))
     else:

@@ -16,7 +16,8 @@ import argparse
 import json
 import sys
 
-from plex_ma.config import command, from_dict
+from plex_ma.config import command
+from plex_ma.trainers.base import saved_config
 from plex_ma.trainers.checkpoint import (CheckpointError, export_pretrained, load_checkpoint, pretrained_dir,
                                          pretrained_names)
 
@@ -39,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in pretrained_names():
             st = load_checkpoint(f"pretrained:{name}")
             print(f"pretrained:{name}  {st['config']['method']}  {st['step']:,} steps\n"
-                  f"  trained by: {st['command']}\n  its config with this code: {command(from_dict(st['config']))}")
+                  f"  trained by: {st['command']}\n  its config with this code: {command(saved_config(st))}")
         return 0
     except CheckpointError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -39,7 +39,9 @@ def _rollout(policy, buf, state, starts, gen):
     lambda: Executor("smt", 64, smt_memory=4),  # tiny memory: the sliding window and the stored memory matter
     lambda: FlatPolicy("smt", 64, smt_memory=5),
     lambda: FlatMapPolicy("gru", 64, gru_hidden=32, value_iteration=True),  # ppo-gru-map: ego map + VIN
-], ids=["executor-gru", "executor-smt", "flat-smt", "flat-gru-map"])
+    lambda: Executor("gru", 64, gru_hidden=32, no_reversal=True),  # the barred turns, from the stored actions
+    lambda: FlatPolicy("smt", 64, smt_memory=5, no_reversal=True),
+], ids=["executor-gru", "executor-smt", "flat-smt", "flat-gru-map", "executor-gru-no-reversal", "flat-smt-no-reversal"])
 def test_evaluate_sequences_matches_step_by_step(make):
     torch.manual_seed(0)
     gen = torch.Generator().manual_seed(1)
@@ -79,6 +81,31 @@ def test_memory_is_used_and_reset(memory):
         _, _, v_reset = ex.evaluate_sequences(seq, actions, no_start.index_fill(0, torch.tensor([0]), True), state)
     assert not torch.allclose(v_mem, v_fresh)  # the stored memory changes the outputs
     torch.testing.assert_close(v_reset, v_fresh, atol=1e-6, rtol=0)  # a start forgets it
+
+
+@pytest.mark.parametrize("memory", ["gru", "smt"])
+def test_no_reversal_bars_undoing_the_last_turn(memory):
+    """With ``no_reversal`` no sequence holds LEFT then RIGHT or RIGHT then LEFT (an untrained
+    policy, near uniform, does without it); a start lifts the bar."""
+    def reversals(no_reversal):
+        torch.manual_seed(0)
+        ex = Executor(memory, 64, gru_hidden=32, smt_memory=8, no_reversal=no_reversal)
+        gen = torch.Generator().manual_seed(0)
+        state, prev, count, after_start = ex.initial_state(16), None, 0, 0
+        for t in range(40):
+            starts = torch.full((16,), t % 10 == 0)
+            out, state = ex.act(ex.example_obs(16, gen), state, starts)
+            a = out["action"]
+            if prev is not None:
+                undo = ((prev == 2) & (a == 3)) | ((prev == 3) & (a == 2))
+                count += int((undo & ~starts).sum())
+                after_start += int((undo & starts).sum())
+            assert torch.equal(ex.split_state(state)[1], a)  # the state keeps the action taken
+            prev = a
+        return count, after_start
+    assert reversals(False)[0] > 20
+    barred, after_start = reversals(True)
+    assert barred == 0 and after_start > 0
 
 
 def test_planner_eli_is_detached_from_executor():
@@ -151,7 +178,8 @@ def test_recurrent_shapes(cls, memory, resolution):
     assert out["action"].shape == out["log_prob"].shape == out["value"].shape == (B,)
     assert out["eli"].shape == (B, ELI_DIM) and out["eli"].abs().max() <= 1
     assert new_state.shape == state.shape
-    assert state.shape == ((B, 512) if memory == "gru" else (B, 256 if cls is FlatPolicy else 128, 129))
+    # the memory's state flattened, and the previous action
+    assert state.shape == ((B, 513) if memory == "gru" else (B, (256 if cls is FlatPolicy else 128) * 129 + 1))
     seq = _stack([policy.example_obs(B) for _ in range(T)])
     lp, ent, v = policy.evaluate_sequences(seq, torch.zeros(T, B), torch.zeros(T, B, dtype=torch.bool), state)
     assert lp.shape == ent.shape == v.shape == (T, B)

@@ -9,6 +9,7 @@ import torch
 
 from plex_ma.config import preset_defaults, replace, validate
 from plex_ma.trainers.evaluation import load_policies, run_episodes
+from plex_ma.trainers.base import saved_config
 from plex_ma.trainers.checkpoint import CheckpointError, export_pretrained, load_checkpoint, pretrained_names
 from plex_ma.trainers import make_trainer
 
@@ -35,6 +36,9 @@ def test_unknown_pretrained_name_and_fine_tuning(tmp_path):
     cfg = replace(preset_defaults("cpu", "ppo-gru"), run_dir=str(tmp_path / "ft"), total_steps=64,
                   num_envs=2, rollout_steps=16, progress=False, record_interval=0,
                   checkpoint="pretrained:ppo-gru")
+    with pytest.raises(CheckpointError, match="executor_no_reversal=False"):  # trained without the mask
+        make_trainer(validate(cfg))
+    cfg = replace(cfg, executor_no_reversal=False)
     t = make_trainer(validate(cfg))
     shipped = load_checkpoint("pretrained:ppo-gru")["models"]["policy"]
     for k, v in t.nets["policy"].state_dict().items():
@@ -64,7 +68,8 @@ def test_planner_architecture_must_match_to_fine_tune(tmp_path):
     assert load_checkpoint("pretrained:plex-gru")["config"]["planner_value_iteration"] is True
     cfg = replace(preset_defaults("cpu"), run_dir=str(tmp_path / "ft"), total_steps=64, num_envs=2,
                   rollout_steps=16, progress=False, record_interval=0, checkpoint="pretrained:plex-gru",
-                  planner_value_iteration=False)
+                  planner_value_iteration=False,
+                  executor_no_reversal=saved_config(load_checkpoint("pretrained:plex-gru")).executor_no_reversal)
     with pytest.raises(CheckpointError, match="planner_value_iteration"):
         make_trainer(validate(cfg))
     with pytest.raises(CheckpointError, match="resolution=48 but this run asks for 64"):
@@ -78,10 +83,10 @@ def test_printed_command_trains_the_shipped_config(name, capsys):
     import dataclasses
     import shlex
 
-    from plex_ma.config import OUTPUT_FIELDS, command, from_dict, parse
+    from plex_ma.config import OUTPUT_FIELDS, command, parse
     from plex_ma.pretrained import main
 
-    stored = from_dict(load_checkpoint(f"pretrained:{name}")["config"])
+    stored = saved_config(load_checkpoint(f"pretrained:{name}"))
     cmd = command(stored)
     assert main([]) == 0 and cmd in capsys.readouterr().out
     back = parse(shlex.split(cmd)[3:])

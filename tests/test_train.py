@@ -353,6 +353,10 @@ def test_saved_config_with_retired_settings_loads():
     # a network these settings no longer build: one clear error that names the setting
     with pytest.raises(CheckpointError, match="executor_goal_skip"):
         saved_config({"config": dataclasses.asdict(cfg) | {"executor_goal_skip": False}})
+    # a setting added later reads as the value older checkpoints were trained with
+    older = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "executor_no_reversal"}
+    assert cfg.executor_no_reversal and not saved_config({"config": older}).executor_no_reversal
+    assert not preset_defaults("paper").executor_no_reversal
     for flag in ("--teacher-subgoal-steps", "--planner-imitation-steps", "--planner-minibatches",
                  "--planner-entropy-coef", "--planner-target-kl", "--executor-goal-skip"):
         with pytest.raises(SystemExit):

@@ -32,14 +32,15 @@ from .ppo import PPOConfig
 
 CHECKPOINT_FORMAT = 1
 # Config fields added after checkpoints were first written, with the value older ones had.
-LEGACY_CONFIG = {"planner_value_iteration": False, "planner_fine_map": False, "planner_step_gamma": None}
+LEGACY_CONFIG = {"planner_value_iteration": False, "planner_fine_map": False, "planner_step_gamma": None,
+                 "executor_no_reversal": False}
 # Retired config fields and the one value the current networks build: a checkpoint saved
 # with another names the field in its error
 RETIRED_CONFIG = {"executor_goal_skip": True}
 
 
-# The settings that shape the networks: a checkpoint loads only into a run with the same.
-ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden")
+# The settings that shape the networks (and their action mask): a checkpoint loads only into a run with the same.
+ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_no_reversal")
 PLEX_ARCH_KEYS = ("planner_value_iteration", "planner_fine_map")  # ... and for the methods that read the ego map (the planner's)
 NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
 
@@ -80,9 +81,10 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
         return {"planner": planner,
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden,
-                                     stop_prior=cfg.executor_stop_prior, heading_prior=cfg.executor_heading_prior)}
+                                     stop_prior=cfg.executor_stop_prior, heading_prior=cfg.executor_heading_prior,
+                                     no_reversal=cfg.executor_no_reversal)}
     flat = dict(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
-                gru_hidden=cfg.executor_hidden)
+                gru_hidden=cfg.executor_hidden, no_reversal=cfg.executor_no_reversal)
     if cfg.method == "ppo-gru-map":
         return {"policy": FlatMapPolicy(value_iteration=cfg.planner_value_iteration, fine_map=cfg.planner_fine_map,
                                         **flat)}

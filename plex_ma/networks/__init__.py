@@ -23,9 +23,10 @@ leading batch dimension:
 Every (distance, direction) vector is fed to the networks as (distance, cos, sin) so that
 directions just either side of +-pi look alike (see ``encode_polar``).
 
-Recurrent policies (executor, flat) keep a memory *state*: one tensor whose first
-dimension is the batch (``initial_state(batch)``), so a rollout buffer can store and index
-it without knowing which memory it is. A ``starts`` mask (B,) says where a new sequence
+Recurrent policies (executor, flat) keep a *state*: their memory's, flattened, and the
+previous action, in one tensor whose first dimension is the batch
+(``initial_state(batch)``), so a rollout buffer can store and index it without knowing
+which memory it is. A ``starts`` mask (B,) says where a new sequence
 begins (new sub-goal or new episode); the memory is cleared *before* that step is
 processed. Initialisation follows CleanRL: orthogonal weights, zero biases, gain sqrt(2)
 for hidden layers, 0.01 for policy heads, 1 for value heads.

@@ -16,6 +16,16 @@ from plex_ma.networks.common import _conv_out_dim, as_tensor, encode_polar, laye
 from plex_ma.networks.memory import GRUMemory, SMTMemory
 
 EXECUTOR_STOP_SLOPE = 20.0  # executor STOP logit per metre nearer the sub-goal than its stop prior
+MASKED_LOGIT = -1e8  # a barred action's logit: probability 0 in float32, finite log-probs and entropy
+
+
+def reversal_mask(prev: torch.Tensor) -> torch.Tensor:
+    """(..., NUM_ACTIONS) bool, True for the turn that would undo the previous action ``prev``
+    (..., long): RIGHT after LEFT and LEFT after RIGHT."""
+    mask = torch.zeros(*prev.shape, NUM_ACTIONS, dtype=torch.bool, device=prev.device)
+    mask[..., TURN_RIGHT] = prev == TURN_LEFT
+    mask[..., TURN_LEFT] = prev == TURN_RIGHT
+    return mask
 
 
 class ExecutorAct(TypedDict):
@@ -66,13 +76,22 @@ class Executor(nn.Module):
     ``stop_prior`` m from its sub-goal, 0.9 at 0.1 m nearer and below 2% from 0.25 m
     farther. (Without it, executors trained under the cpu preset's STOP penalty never chose
     STOP and turned in place at their sub-goals.)
+
+    ``no_reversal``: the policy never undoes its previous turn within a sequence (a sub-goal,
+    or the flat agents' episode): after LEFT, RIGHT has probability 0, and after RIGHT, LEFT.
+    Without it greedy agents dithered LEFT, RIGHT, LEFT ... in front of obstacles until the
+    time-out (docs/results.md).
+
+    State: the memory's state flattened, then one column holding the previous action
+    (:meth:`act` writes it; ``forward`` leaves 0 there, as it does not choose the action).
     """
 
     goal_key = "subgoal"
 
     def __init__(self, memory: str = "gru", resolution: int = 128, eli_dim: int = ELI_DIM,
                  smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512,
-                 stop_prior: float | None = None, extra_inputs: int = 0, heading_prior: float | None = None):
+                 stop_prior: float | None = None, extra_inputs: int = 0, heading_prior: float | None = None,
+                 no_reversal: bool = False):
         """``extra_inputs``: features a subclass's ``_inputs`` adds to the memory's input
         beside the image's and the goal's (:class:`FlatMapPolicy`'s map features).
         ``heading_prior`` (logits, or None): the actor's goal inputs start
@@ -81,13 +100,14 @@ class Executor(nn.Module):
         super().__init__()
         if memory not in ("gru", "smt"):
             raise ValueError(f"memory must be 'gru' or 'smt', got {memory!r}")
-        self.memory_kind, self.resolution, self.eli_dim = memory, resolution, eli_dim
+        self.memory_kind, self.resolution, self.eli_dim, self.no_reversal = memory, resolution, eli_dim, no_reversal
         emb = 512 if memory == "gru" else 128
         self.encoder = RGBDEncoder(resolution, emb)
         if memory == "gru":
             self.memory = GRUMemory(emb + 3 + extra_inputs, gru_hidden)
         else:
             self.memory = SMTMemory(emb + 3 + extra_inputs, 128, smt_heads, smt_memory)
+        self._memory_shape = tuple(self.memory.initial_state(1).shape[1:])
         self.eli_head = layer_init(nn.Linear(self.memory.out_dim, eli_dim))
         # the heads also read the encoded goal vector, so that "turn towards the
         # goal" is a simple function of their input from the first update on (through the
@@ -116,7 +136,19 @@ class Executor(nn.Module):
         return self.actor.weight.device
 
     def initial_state(self, batch: int) -> torch.Tensor:
-        return self.memory.initial_state(batch, self.device)
+        """(B, memory state size + 1): an empty memory and no previous action."""
+        mem = self.memory.initial_state(batch, self.device)
+        return torch.cat([mem.reshape(batch, -1), torch.zeros(batch, 1, device=self.device)], dim=1)
+
+    def split_state(self, state: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(the memory's state, a view of ``state``; the previous action (B,) long)."""
+        return state[:, :-1].view(state.shape[0], *self._memory_shape), state[:, -1].long()
+
+    def _bar_reversals(self, logits: torch.Tensor, prev: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
+        if not self.no_reversal:
+            return logits
+        prev = prev.masked_fill(starts, STOP)  # a new sequence has no previous action
+        return logits.masked_fill(reversal_mask(prev), MASKED_LOGIT)
 
     def _inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
         """Any leading dims (...) -> memory input (..., emb + 3) and encoded goal (..., 3)."""
@@ -140,9 +172,11 @@ class Executor(nn.Module):
         """One step for a batch: (logits (B, 4), value (B,), eli (B, 128), new state)."""
         starts = as_tensor(starts, self.device, torch.bool)
         x, goal = self._inputs(obs)
-        out, state = self.memory.step(x, state, starts)
+        mem, prev = self.split_state(state)
+        out, mem = self.memory.step(x, mem, starts)
         logits, value, eli = self._heads(out, goal)
-        return logits, value, eli, state
+        state = torch.cat([mem.reshape(mem.shape[0], -1), torch.zeros_like(state[:, -1:])], dim=1)
+        return self._bar_reversals(logits, prev, starts), value, eli, state
 
     @torch.no_grad()
     def act(self, obs: dict, state: torch.Tensor, starts, deterministic: bool = False) -> tuple[ExecutorAct, torch.Tensor]:
@@ -150,6 +184,7 @@ class Executor(nn.Module):
         logits, value, eli, state = self(obs, state, starts)
         dist = Categorical(logits=logits)
         action = logits.argmax(-1) if deterministic else dist.sample()
+        state[:, -1] = action
         return ExecutorAct(action=action, log_prob=dist.log_prob(action), value=value, eli=eli), state
 
     def evaluate_sequences(self, obs_seq: dict, actions: torch.Tensor, starts: torch.Tensor,
@@ -157,11 +192,14 @@ class Executor(nn.Module):
         """Training pass over (T, B) sequences whose memory is ``initial_state`` before step 0
         and is cleared where ``starts``: (log_prob, entropy, value), each (T, B)."""
         starts = as_tensor(starts, self.device, torch.bool)
+        actions = as_tensor(actions, self.device).long()
         x, goal = self._inputs(obs_seq)
-        out = self.memory.sequence(x, initial_state, starts)
+        mem, prev = self.split_state(initial_state)
+        out = self.memory.sequence(x, mem, starts)
         logits, value, _ = self._heads(out, goal)
+        logits = self._bar_reversals(logits, torch.cat([prev[None], actions[:-1]]), starts)
         dist = Categorical(logits=logits)
-        return dist.log_prob(as_tensor(actions, self.device).long()), dist.entropy(), value
+        return dist.log_prob(actions), dist.entropy(), value
 
     def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
         r = self.resolution
