@@ -23,7 +23,7 @@ import tyro
 from plex_ma.envs.rules import PlexConfig, make_config
 
 # Where the trainer's env defaults differ from the env's own (the env's are the paper's, docs/spec.md).
-TRAIN_ENV = {"resolution": 48, "n_ex": 18, "subgoal_radius": 0.2, "executor_stop_penalty": -0.5,
+TRAIN_ENV = {"resolution": 48, "n_ex": 30, "subgoal_radius": 0.2, "executor_stop_penalty": -0.5,
              "executor_collision_reward": -0.15}
 Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt", "ppo-gru-map"]
 Preset = Literal["smoke", "cpu", "paper"]

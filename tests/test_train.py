@@ -19,9 +19,10 @@ from plex_ma.trainers.plex import PHASES, PlexTrainer
 
 
 def tiny(tmp_path, **kw) -> TrainConfig:
-    """A configuration small enough for a few seconds of training."""
+    """A configuration small enough for a few seconds of training (N_EX 18: turns short enough
+    that a hundred-odd steps hold planner updates)."""
     cfg = replace(preset_defaults("smoke"), run_dir=str(tmp_path / "run"), total_steps=96, num_envs=2,
-                  rollout_steps=16, n_pl=2, num_scenes=2, executor_hidden=32, smt_memory=16,
+                  rollout_steps=16, n_pl=2, n_ex=18, num_scenes=2, executor_hidden=32, smt_memory=16,
                   progress=False, ppo_epochs=1, num_minibatches=1, torch_threads=1)
     return validate(replace(cfg, **kw))
 
