@@ -14,6 +14,7 @@ from plex_ma.envs.rules import NavConfig, PlexConfig, PlexWorlds, PointNavWorlds
 from plex_ma.envs.sim.core import MOVE_FORWARD, TURN_LEFT, TURN_RIGHT
 from plex_ma.envs.vector import PointNavVectorEnv
 from plex_ma.evaluate import main as evaluate_main
+from plex_ma.networks.flat import MAP_PLAN
 from plex_ma.networks import FlatMapPolicy, FlatPolicy, MapEncoder, Planner, ValueIteration
 from plex_ma.train import main as train_main
 from plex_ma.trainers import make_trainer
@@ -91,6 +92,40 @@ def test_map_policy_reads_the_map_through_the_planners_encoder():
     lp, ent, v = policy.evaluate_sequences(seq, torch.zeros(1, 3), starts[None], policy.initial_state(3))
     (v.sum() + lp.sum()).backward()
     assert policy.map.convs[0].weight.grad.abs().sum() > 0
+
+
+def test_stored_map_plan_gives_the_same_training_pass():
+    """The rollout stores the value-iteration read-out (``with_map_plan``) and the PPO epochs
+    reuse it: on real ego maps, the sequences' log-probs, entropies, values and gradients
+    equal those of a pass that recomputes it (up to float rounding: torch's vectorised sin,
+    cos and atan2 round differently across batch sizes); without the module nothing is added."""
+    torch.manual_seed(0)
+    policy = FlatMapPolicy("gru", 64, gru_hidden=32, value_iteration=True, fine_map=True)
+    env = PointNavVectorEnv(3, seed=5, egomap=True, **SMALL | dict(resolution=64))
+    obs, steps = env.reset(), []
+    for t in range(6):
+        steps.append(policy.with_map_plan(obs))
+        obs, *_ = env.step(np.array([MOVE_FORWARD, TURN_LEFT, MOVE_FORWARD if t % 2 else TURN_RIGHT]))
+    assert steps[0][MAP_PLAN].shape == (3, policy.map.vin_dim)
+    stored = {k: torch.as_tensor(np.stack([s[k] for s in steps])) for k in steps[0]}
+    recomputed = {k: v for k, v in stored.items() if k != MAP_PLAN}
+    actions, starts = torch.zeros(6, 3), torch.zeros(6, 3, dtype=torch.bool)
+    passes = []
+    for seq in (stored, recomputed):
+        policy.zero_grad()
+        out = policy.evaluate_sequences(seq, actions, starts, policy.initial_state(3))
+        sum(x.sum() for x in out).backward()
+        passes.append([*out, *(p.grad.clone() for p in policy.parameters() if p.grad is not None)])
+    assert len(passes[0]) == len(passes[1]) > 10
+    for a, b in zip(*passes):
+        torch.testing.assert_close(a, b)
+    # a wrong read-out would change the pass
+    policy.zero_grad()
+    wrong = policy.evaluate_sequences({**stored, MAP_PLAN: stored[MAP_PLAN].flip(0)}, actions, starts,
+                                      policy.initial_state(3))[2]
+    assert (wrong - passes[0][2]).abs().max() > 1e-4
+    plain = FlatMapPolicy("gru", 64, gru_hidden=32)
+    assert plain.with_map_plan(obs) is obs and FlatPolicy("gru", 64).with_map_plan(obs) is obs
 
 
 def test_method_builds_the_map_policy_with_the_presets_value_iteration():

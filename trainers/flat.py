@@ -43,6 +43,7 @@ class FlatTrainer(Trainer):
             buf.initial_state = state.clone()
             for t in range(T):
                 t0 = time.perf_counter()
+                obs = self.policy.with_map_plan(obs)  # stored with the step: the epochs reuse it
                 out, state = self.policy.act(obs, state, starts)
                 obs_t = {k: np.array(v) for k, v in obs.items()}
                 t1 = time.perf_counter()

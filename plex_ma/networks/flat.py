@@ -11,6 +11,8 @@ from plex_ma.networks.common import as_tensor
 from plex_ma.networks.executor import Executor
 from plex_ma.networks.planner import MapEncoder
 
+MAP_PLAN = "map_plan"  # the observation key of the value-iteration read-out (FlatMapPolicy.with_map_plan)
+
 
 class FlatPolicy(Executor):
     """Flat PointNav baselines: PPO-GRU (Savva et al. 2019) and PPO-SMT (Fang et al. 2019).
@@ -26,6 +28,10 @@ class FlatPolicy(Executor):
     goal_key = "pointgoal"
     reads_ego_map = False  # the flat worlds need not keep ego maps (FlatMapPolicy's do)
 
+    def with_map_plan(self, obs: dict) -> dict:
+        """The observations the rollout stores (:meth:`FlatMapPolicy.with_map_plan` adds to them)."""
+        return obs
+
     def __init__(self, memory: str = "gru", resolution: int = 128, smt_memory: int = 256, **kw):
         super().__init__(memory=memory, resolution=resolution, smt_memory=smt_memory, **kw)
 
@@ -39,7 +45,8 @@ class FlatMapPolicy(FlatPolicy):
     :class:`MapEncoder` (its trunk and, with ``value_iteration``, its value-iteration module,
     which reads the point goal as the planner reads its goal), and those features enter the
     memory beside the image features and the encoded goal; everything after the memory is
-    :class:`FlatPolicy`'s.
+    :class:`FlatPolicy`'s. The value-iteration module has no parameters, so the trainer
+    stores its read-out with each step (:meth:`with_map_plan`) and the PPO epochs reuse it.
     """
 
     reads_ego_map = True
@@ -50,13 +57,24 @@ class FlatMapPolicy(FlatPolicy):
         super().__init__(memory=memory, resolution=resolution, extra_inputs=encoder.map_dim + encoder.vin_dim, **kw)
         self.map = encoder
 
+    def with_map_plan(self, obs: dict) -> dict:
+        """``obs`` and, with the value-iteration module, its read-out under ``MAP_PLAN`` (a
+        numpy array (B, vin_dim)): the same numbers that :meth:`_inputs` would compute."""
+        if self.map.vin is None:
+            return obs
+        dev = self.device
+        ego = as_tensor(obs["ego_map"], dev, torch.float32)
+        feats, _ = self.map.vin(ego, as_tensor(obs[self.goal_key], dev, torch.float32))
+        return {**obs, MAP_PLAN: feats.cpu().numpy()}
+
     def _inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
         x, goal = super()._inputs(obs)
         dev = self.device
         ego = as_tensor(obs["ego_map"], dev, torch.float32)
         pointgoal = as_tensor(obs[self.goal_key], dev, torch.float32)
         lead = ego.shape[:-3]
-        feat = self.map(ego.reshape(-1, *ego.shape[-3:]), pointgoal.reshape(-1, 2))
+        vin = as_tensor(obs[MAP_PLAN], dev, torch.float32).reshape(-1, self.map.vin_dim) if MAP_PLAN in obs else None
+        feat = self.map(ego.reshape(-1, *ego.shape[-3:]), pointgoal.reshape(-1, 2), vin)
         return torch.cat([x, feat.view(*lead, -1)], dim=-1), goal
 
     def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:

@@ -78,9 +78,13 @@ class MapEncoder(nn.Module):
             return trunk, None, None
         return trunk, *self.vin(ego, goal)
 
-    def forward(self, ego: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
-        """(B, map_dim + vin_dim): the trunk's and the value-iteration module's features."""
-        trunk, vin, _ = self.read_map(ego, goal)
+    def forward(self, ego: torch.Tensor, goal: torch.Tensor, vin: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, map_dim + vin_dim): the trunk's and the value-iteration module's features;
+        ``vin`` (B, vin_dim), where given, is the module's read-out computed beforehand."""
+        if vin is None:
+            trunk, vin, _ = self.read_map(ego, goal)
+        else:
+            trunk = self.convs(ego[:, :self.convs[0].in_channels])
         return trunk if vin is None else torch.cat([trunk, vin], dim=1)
 
 

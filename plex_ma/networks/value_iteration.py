@@ -199,7 +199,8 @@ def _diag_costs(c, cd):
 @numba.njit(cache=True, nogil=True)
 def _bellman_forward(cost, sources, iterations, out):
     """``iterations`` updates of every map into ``out``, with the same float operations as
-    :func:`bellman_reference`."""
+    :func:`bellman_reference`; a map's updates stop early once one changes no cell (the
+    fixed point: the rest would change nothing)."""
     B, h, w = cost.shape
     big = np.float32(BELLMAN_UNREACHED)
     p = np.full((h + 2, w + 2), big, np.float32)
@@ -212,6 +213,7 @@ def _bellman_forward(cost, sources, iterations, out):
                 d[i, j] = np.float32(0.0) if src[i, j] else big
         for _ in range(iterations):
             p[1:h + 1, 1:w + 1] = d
+            changed = False
             for i in range(h):
                 for j in range(w):
                     if src[i, j]:
@@ -221,4 +223,8 @@ def _bellman_forward(cost, sources, iterations, out):
                     best = min(best, p[i, j + 2] + cd[1, i, j])
                     best = min(best, p[i + 2, j] + cd[2, i, j])
                     best = min(best, p[i + 2, j + 2] + cd[3, i, j])
-                    d[i, j] = min(p[i + 1, j + 1], best)
+                    if best < p[i + 1, j + 1]:
+                        d[i, j] = best
+                        changed = True
+            if not changed:
+                break
