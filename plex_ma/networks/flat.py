@@ -28,12 +28,12 @@ class FlatPolicy(Executor):
     goal_key = "pointgoal"
     reads_ego_map = False  # the flat worlds need not keep ego maps (FlatMapPolicy's do)
 
+    def __init__(self, memory: str = "gru", resolution: int = 128, smt_memory: int = 256, **kw):
+        super().__init__(memory=memory, resolution=resolution, smt_memory=smt_memory, **kw)
+
     def with_map_plan(self, obs: dict) -> dict:
         """The observations the rollout stores (:meth:`FlatMapPolicy.with_map_plan` adds to them)."""
         return obs
-
-    def __init__(self, memory: str = "gru", resolution: int = 128, smt_memory: int = 256, **kw):
-        super().__init__(memory=memory, resolution=resolution, smt_memory=smt_memory, **kw)
 
 
 class FlatMapPolicy(FlatPolicy):
