@@ -36,9 +36,8 @@ def test_unknown_pretrained_name_and_fine_tuning(tmp_path):
     cfg = replace(preset_defaults("cpu", "ppo-gru"), run_dir=str(tmp_path / "ft"), total_steps=64,
                   num_envs=2, rollout_steps=16, progress=False, record_interval=0,
                   checkpoint="pretrained:ppo-gru")
-    with pytest.raises(CheckpointError, match="executor_no_reversal=False"):  # trained without the mask
-        make_trainer(validate(cfg))
-    cfg = replace(cfg, executor_no_reversal=False)
+    with pytest.raises(CheckpointError, match="executor_no_reversal"):  # trained with the turn mask
+        make_trainer(validate(replace(cfg, executor_no_reversal=False)))
     t = make_trainer(validate(cfg))
     shipped = load_checkpoint("pretrained:ppo-gru")["models"]["policy"]
     for k, v in t.nets["policy"].state_dict().items():
