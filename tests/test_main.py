@@ -33,7 +33,9 @@ def test_the_list_is_the_package_command_lines():
     assert have_main == set(cli.COMMANDS)
 
 
-def test_a_command_runs_its_module(capsys):
+def test_a_command_runs_its_module(capsys, monkeypatch):
+    # as from a shell, the command's module is not imported yet (else runpy warns)
+    monkeypatch.delitem(sys.modules, "plex_ma.episodes", raising=False)
     argv = list(sys.argv)
     with pytest.raises(SystemExit) as e:
         cli.main(["episodes", "--help"])

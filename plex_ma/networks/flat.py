@@ -62,20 +62,21 @@ class FlatMapPolicy(FlatPolicy):
         numpy array (B, vin_dim)): the same numbers that :meth:`_inputs` would compute."""
         if self.map.vin is None:
             return obs
-        dev = self.device
-        ego = as_tensor(obs["ego_map"], dev, torch.float32)
-        feats, _ = self.map.vin(ego, as_tensor(obs[self.goal_key], dev, torch.float32))
+        feats, _ = self.map.vin(*self._map_inputs(obs))
         return {**obs, MAP_PLAN: feats.cpu().numpy()}
+
+    def _map_inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """The ego maps (B, C, S, S) and point goals (B, 2) of observations with any leading dims."""
+        ego = as_tensor(obs["ego_map"], self.device, torch.float32)
+        pointgoal = as_tensor(obs[self.goal_key], self.device, torch.float32)
+        return ego.reshape(-1, *ego.shape[-3:]), pointgoal.reshape(-1, 2)
 
     def _inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
         x, goal = super()._inputs(obs)
-        dev = self.device
-        ego = as_tensor(obs["ego_map"], dev, torch.float32)
-        pointgoal = as_tensor(obs[self.goal_key], dev, torch.float32)
-        lead = ego.shape[:-3]
-        vin = as_tensor(obs[MAP_PLAN], dev, torch.float32).reshape(-1, self.map.vin_dim) if MAP_PLAN in obs else None
-        feat = self.map(ego.reshape(-1, *ego.shape[-3:]), pointgoal.reshape(-1, 2), vin)
-        return torch.cat([x, feat.view(*lead, -1)], dim=-1), goal
+        vin = obs.get(MAP_PLAN)
+        vin = None if vin is None else as_tensor(vin, self.device, torch.float32).reshape(-1, self.map.vin_dim)
+        feat = self.map(*self._map_inputs(obs), vin)
+        return torch.cat([x, feat.view(*x.shape[:-1], -1)], dim=-1), goal
 
     def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
         # mostly unseen cells, some free and some obstacles, as an ego map reads

@@ -73,10 +73,14 @@ class MapEncoder(nn.Module):
         """ego (B, C, S, S), goal (B, 2) = (distance m, direction rad) -> the trunk's features
         (B, map_dim), the value-iteration features (B, vin_dim) and its sub-goal (B, 2) =
         (distance m, direction rad) (both None without the module)."""
-        trunk = self.convs(ego[:, :self.convs[0].in_channels])
+        trunk = self.trunk(ego)
         if self.vin is None:
             return trunk, None, None
         return trunk, *self.vin(ego, goal)
+
+    def trunk(self, ego: torch.Tensor) -> torch.Tensor:
+        """ego (B, C, S, S) -> the trunk's features (B, map_dim), from the map's first ``ego_channels`` channels."""
+        return self.convs(ego[:, :self.convs[0].in_channels])
 
     def forward(self, ego: torch.Tensor, goal: torch.Tensor, vin: torch.Tensor | None = None) -> torch.Tensor:
         """(B, map_dim + vin_dim): the trunk's and the value-iteration module's features;
@@ -84,7 +88,7 @@ class MapEncoder(nn.Module):
         if vin is None:
             trunk, vin, _ = self.read_map(ego, goal)
         else:
-            trunk = self.convs(ego[:, :self.convs[0].in_channels])
+            trunk = self.trunk(ego)
         return trunk if vin is None else torch.cat([trunk, vin], dim=1)
 
 
