@@ -91,7 +91,7 @@ unchanged (`pettingzoo.test.render_test` passes headless).
 
 | argument | default | meaning |
 |---|---|---|
-| `resolution` | 128 | RGB-D image size in pixels (square, 16-1024) |
+| `resolution` | 128 | RGB-D image size in pixels (square, 8-1024) |
 | `n_ex` | 10 | executor actions per turn at most |
 | `max_steps` | 500 | executor actions before truncation |
 | `rho_max` | 4.0 | largest sub-goal distance (m) |

@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         try:
             cfg = replace(TrainConfig(), resolution=a.resolution, max_steps=a.max_steps, scenes=a.scenes or "procgen")
             cfg.env.validate()  # the worlds' rules only: nothing is trained here
-        except ValueError as e:  # e.g. "config resolution=0: must be an integer in [16, 1024]"
+        except ValueError as e:  # e.g. "config resolution=0: must be an integer in [8, 1024]"
             p.error(re.sub(r"^config (\w+)=", lambda m: f"--{m.group(1).replace('_', '-')}=", str(e)))
     rec = EpisodeRecorder(a.out, max_episodes=a.episodes, images=not a.no_images, jpeg_quality=a.jpeg_quality,
                           spawn=a.spawn, name=None)

@@ -179,7 +179,7 @@ def test_recurrent_shapes(cls, memory, resolution):
     assert out["eli"].shape == (B, ELI_DIM) and out["eli"].abs().max() <= 1
     assert new_state.shape == state.shape
     # the memory's state flattened, and the previous action
-    assert state.shape == ((B, 513) if memory == "gru" else (B, (256 if cls is FlatPolicy else 128) * 129 + 1))
+    assert state.shape == ((B, 513) if memory == "gru" else (B, 128 * 129 + 1))
     seq = _stack([policy.example_obs(B) for _ in range(T)])
     lp, ent, v = policy.evaluate_sequences(seq, torch.zeros(T, B), torch.zeros(T, B, dtype=torch.bool), state)
     assert lp.shape == ent.shape == v.shape == (T, B)

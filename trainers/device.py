@@ -1,4 +1,4 @@
-"""Where the networks run: ``--device {auto,cpu,cuda}``.
+"""Where the networks run: ``--device {auto,cpu,cuda,cuda:N}``.
 
 The simulator always runs on the CPU (numba threads over the worlds). The networks, the
 rollout storage, GAE and the PPO updates live on the chosen device; observations cross to

@@ -55,7 +55,8 @@ def run_episodes(cfg: TrainConfig, nets: dict, split: str = "test", episodes: in
     Actions are greedy, or sampled with ``sample`` (seeded by ``seed``, on a fork of torch's
     RNG: a caller's random stream, e.g. a training run's, is left as it was). For PLEX,
     ``planner`` and ``executor`` pick each agent's policy: 'learned' (the network in
-    ``nets``), 'oracle' (shortest-path, ground truth) or 'random'."""
+    ``nets``), 'oracle' (shortest-path, ground truth) or 'random'; the planner also 'map' or
+    'map-los' (hand-written planners on the ego map) or 'vin' (the value-iteration module's sub-goal)."""
     devices = {p.device for net in nets.values() for p in net.parameters() if p.device.type == "cuda"}
     # fork only the generators in use (forking all of them would start every visible GPU)
     with torch.no_grad(), torch.random.fork_rng(devices=[d.index or 0 for d in devices]):

@@ -65,7 +65,8 @@ class Executor(nn.Module):
     """Executor: RGB-D CNN -> FC (+ goal) -> GRU or SMT memory -> 128-d output, which is
     both the action embedding and the ELI -> 4-way action logits and a value.
 
-    ``memory="gru"``: FC 512, GRU hidden 512, then a linear layer to the 128-d output.
+    ``memory="gru"``: FC 512, a GRU of ``gru_hidden`` units (the trainer passes
+    ``--executor-hidden``, 128), then a linear layer to the 128-d output.
     ``memory="smt"``: FC 128, SMT with ``smt_heads`` heads over up to ``smt_memory``
     tokens, then a linear layer to the 128-d output. The output goes through tanh so the
     ELI sent to the planner stays in [-1, 1].

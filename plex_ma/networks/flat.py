@@ -28,7 +28,7 @@ class FlatPolicy(Executor):
     goal_key = "pointgoal"
     reads_ego_map = False  # the flat worlds need not keep ego maps (FlatMapPolicy's do)
 
-    def __init__(self, memory: str = "gru", resolution: int = 128, smt_memory: int = 256, **kw):
+    def __init__(self, memory: str = "gru", resolution: int = 128, smt_memory: int = 128, **kw):
         super().__init__(memory=memory, resolution=resolution, smt_memory=smt_memory, **kw)
 
     def with_map_plan(self, obs: dict) -> dict:
