@@ -14,9 +14,9 @@ Sensors:
   along the optical axis, as in Habitat) in metres, clipped to [0, 10] and divided by 10.
 * GPS+compass: the pose plus optional zero-mean Gaussian noise, drawn fresh at every
   step (``pose_noise=(sigma_position_m, sigma_heading_rad)``).
-* Ego map (docs/spec.md section 2): every depth image, sub-sampled with stride ``max(1, R // 32)`` pixels, is
-  back-projected with the camera intrinsics and the *noisy* pose into an allocentric grid
-  of 0.25 m cells. Points between 0.1 m and the agent's height (1.5 m) mark obstacles
+* Ego map (docs/spec.md section 2): every depth image, sub-sampled with stride
+  ``max(1, R // 32)`` pixels, is back-projected with the camera intrinsics and the *noisy*
+  pose into an allocentric grid of 0.25 m cells. Points between 0.1 m and the agent's height (1.5 m) mark obstacles
   (obstacles are sticky: the highest point wins), points below 0.1 m mark explored
   floor, and points above 1.5 m (ceiling, lintels) are dropped. The planner's view is a
   crop of ``ego_size`` x ``ego_size`` cells of 0.5 m around the agent, rotated so that
