@@ -25,16 +25,11 @@ from dataclasses import dataclass
 import gymnasium
 import numpy as np
 
-import plex_ma  # noqa: F401  (registers plex_ma/PointNav-v0; imported before torch, see below)
+import plex_ma  # noqa: F401  (registers plex_ma/PointNav-v0)
 import torch
 import tyro
 from torch import nn
 from torch.distributions import Categorical
-
-# plex_ma sets OMP_WAIT_POLICY=PASSIVE, which torch's OpenMP runtime reads once, when torch
-# loads it. Imported after torch, torch's threads spin while they wait, and beside any
-# other busy process the networks slow down by 10x or more (plex_ma warns; the simulator's
-# kernels do not use OpenMP and run at the same speed either way).
 
 
 @dataclass

@@ -43,9 +43,9 @@ import time
 
 import numpy as np
 
-from plex_ma.envs import plex_nav_v0  # before torch: its OpenMP wait policy (plex_ma/__init__.py)
-import torch  # noqa: E402
-from torch import nn  # noqa: E402
+from plex_ma.envs import plex_nav_v0
+import torch
+from torch import nn
 
 try:
     from tianshou.algorithm import PPO

@@ -33,15 +33,15 @@ import argparse
 
 import gymnasium as gym
 
-from plex_ma.envs import plex_nav_v0  # before torch: its OpenMP wait policy (plex_ma/__init__.py)
-from ray.rllib.algorithms.ppo import PPOConfig  # noqa: E402
-from ray.rllib.connectors.env_to_module import FlattenObservations  # noqa: E402
-from ray.rllib.core.columns import Columns  # noqa: E402
-from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec  # noqa: E402
-from ray.rllib.core.rl_module.rl_module import RLModuleSpec  # noqa: E402
-from ray.rllib.env.wrappers.pettingzoo_env import PettingZooEnv  # noqa: E402
-from ray.rllib.examples.rl_modules.classes.action_masking_rlm import ActionMaskingTorchRLModule  # noqa: E402
-from ray.tune.registry import register_env  # noqa: E402
+from plex_ma.envs import plex_nav_v0
+from ray.rllib.algorithms.ppo import PPOConfig
+from ray.rllib.connectors.env_to_module import FlattenObservations
+from ray.rllib.core.columns import Columns
+from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
+from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+from ray.rllib.env.wrappers.pettingzoo_env import PettingZooEnv
+from ray.rllib.examples.rl_modules.classes.action_masking_rlm import ActionMaskingTorchRLModule
+from ray.tune.registry import register_env
 
 AGENTS = ("planner", "executor")
 

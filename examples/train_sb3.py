@@ -18,7 +18,7 @@ them. What it does with each key depends on how the key is encoded:
 * ``pointgoal``, 2 floats (distance m, direction rad): flattened.
 
 NatureCNN needs images of at least 36 px. The example prints each iteration's episodes and
-mean return. The ``plex_ma`` import comes before torch: see ``plex_ma/__init__.py``.
+mean return.
 """
 
 from __future__ import annotations
@@ -29,10 +29,10 @@ import time
 import gymnasium
 import numpy as np
 
-import plex_ma  # noqa: F401  (registers plex_ma/PointNav-v0; before torch: its OpenMP wait policy)
-from stable_baselines3 import PPO  # noqa: E402
-from stable_baselines3.common.callbacks import BaseCallback  # noqa: E402
-from stable_baselines3.common.env_util import make_vec_env  # noqa: E402
+import plex_ma  # noqa: F401  (registers plex_ma/PointNav-v0)
+from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
 
 
 class DepthAsImage(gymnasium.ObservationWrapper):

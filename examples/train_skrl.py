@@ -32,15 +32,15 @@ import argparse
 
 import numpy as np
 
-from plex_ma.envs import plex_nav_v0  # before torch: its OpenMP wait policy (plex_ma/__init__.py)
-import torch  # noqa: E402
-from pettingzoo.utils.conversions import turn_based_aec_to_parallel  # noqa: E402
-from skrl.envs.wrappers.torch.pettingzoo_envs import PettingZooWrapper  # noqa: E402
-from skrl.memories.torch import RandomMemory  # noqa: E402
-from skrl.models.torch import CategoricalMixin, DeterministicMixin, Model  # noqa: E402
-from skrl.multi_agents.torch.ippo import IPPO  # noqa: E402
-from skrl.trainers.torch import SequentialTrainer  # noqa: E402
-from torch import nn  # noqa: E402
+from plex_ma.envs import plex_nav_v0
+import torch
+from pettingzoo.utils.conversions import turn_based_aec_to_parallel
+from skrl.envs.wrappers.torch.pettingzoo_envs import PettingZooWrapper
+from skrl.memories.torch import RandomMemory
+from skrl.models.torch import CategoricalMixin, DeterministicMixin, Model
+from skrl.multi_agents.torch.ippo import IPPO
+from skrl.trainers.torch import SequentialTrainer
+from torch import nn
 
 
 class NoState(PettingZooWrapper):

@@ -52,9 +52,9 @@ import warnings
 
 import numpy as np
 
-from plex_ma.envs import plex_nav_v0  # before torch: its OpenMP wait policy (plex_ma/__init__.py)
-import torch  # noqa: E402
-from torch import nn  # noqa: E402
+from plex_ma.envs import plex_nav_v0
+import torch
+from torch import nn
 
 try:
     from tensordict import TensorDict

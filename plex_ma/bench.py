@@ -10,24 +10,25 @@ networks' FLOPs per step, this machine's matmul GFLOP/s and the update's efficie
 
 ``order`` checks that the order of imports does not change the env's speed. It runs
 ``--rounds`` rounds of fresh child processes, one per module in ``--first`` (default
-``plex_ma``, ``torch`` and ``numba``), each importing that module before plex_ma, with
-``OMP_WAIT_POLICY`` removed from their environment (as in a fresh shell; the bench's own
-``import plex_ma`` set it); the order of the children
-rotates from round to round, so that the machine's drift falls on all of them. Each child
+``plex_ma``, ``torch`` and ``numba``), each importing that module before plex_ma, in the
+environment the bench was started with (without the ``OMP_WAIT_POLICY`` that ``python -m
+plex_ma.bench`` chooses for itself); the order of the children rotates from round to round,
+so that the machine's drift falls on all of them. Each child
 times, best of ``--blocks`` blocks: ``single``, one ``gymnasium.make("plex_ma/PointNav-v0")``
 env (an SB3- or RLlib-style loop); ``vector``, ``PointNavVectorEnv`` at ``--num-envs``
 worlds (numba's threads share out the worlds); ``torch_env``, the single env with a
 forward pass of a small CNN (SB3's NatureCNN) on each observation, torch at its default
 threads (``--no-torch-env`` leaves it out). Each rate comes per second of wall time and
 (``_cpu``) per second of the process's CPU time, which another process's load inflates
-less. It reports numba's threading layer, whether ``import plex_ma`` warned, and a digest
+less. It reports numba's threading layer, the children's ``OMP_WAIT_POLICY`` after
+``import plex_ma`` (a plain import leaves it, and torch's OpenMP runtime, alone), and a digest
 of the vector env's last observations (the same in every child: the kernels give the same
 results whatever the order). ``ratio`` is each child's median over the ``plex_ma``-first
 child's.
-``torch_env`` also measures torch itself: when torch is imported first, torch's OpenMP
-runtime starts before plex_ma can ask it to wait passively (``OMP_WAIT_POLICY``), and its
-threads spin between operations, which on a busy machine slows torch many times over
-(plex_ma warns when that happens; exporting ``OMP_WAIT_POLICY=PASSIVE`` avoids it).
+``torch_env`` also times torch, as the children's environment sets it up: at its defaults
+its OpenMP threads spin between operations, which on a busy machine slows it many times
+over; ``OMP_WAIT_POLICY=PASSIVE python -m plex_ma.bench order`` times it waiting passively,
+as plex_ma's own commands run it.
 
 ``record`` times the cost of the rerun recordings made during training: the same short
 training (``--preset``, ``--updates`` executor updates, fresh run dirs) once without
@@ -54,6 +55,7 @@ import numba
 import numpy as np
 import torch
 
+import plex_ma
 import plex_ma.viz as vr
 from plex_ma import bench_envs
 from plex_ma.bench_envs import bench_env, bench_geodesic, bench_gymvec, bench_sim, machine
@@ -69,18 +71,16 @@ from plex_ma.trainers.base import build_policies
 
 # A child of ``bench order``: imports ``argv[1]`` before plex_ma, then times the envs.
 _ORDER_CHILD = """
-import importlib, sys, warnings
+import importlib, os, sys
 importlib.import_module(sys.argv[1])
-with warnings.catch_warnings(record=True) as caught:
-    warnings.simplefilter("always")
-    import plex_ma
-warned = any(w.category.__name__ == "OpenMPWarning" for w in caught)
+import plex_ma
 from plex_ma.bench import order_child
-order_child(*sys.argv[2:], warned=warned)
+order_child(*sys.argv[2:], wait_policy=os.environ.get("OMP_WAIT_POLICY"))
 """
 
 
-def order_child(steps: str, num_envs: str, resolution: str, blocks: str, torch_env: str, warned: bool) -> None:
+def order_child(steps: str, num_envs: str, resolution: str, blocks: str, torch_env: str,
+                wait_policy: str | None) -> None:
     """One child of ``bench order`` (run after its first import): prints one JSON line."""
     steps, num_envs, resolution, blocks = int(steps), int(num_envs), int(resolution), int(blocks)
     cfg = dict(resolution=resolution, num_scenes=4, max_steps=200)
@@ -129,7 +129,7 @@ def order_child(steps: str, num_envs: str, resolution: str, blocks: str, torch_e
     for v in venv.step(np.ones(num_envs, np.int64))[0].values():
         digest.update(np.ascontiguousarray(v).tobytes())
     print(json.dumps({"threading_layer": numba.threading_layer(), "digest": digest.hexdigest()[:16],
-                      "torch_threads": torch.get_num_threads(), "warned": warned,
+                      "torch_threads": torch.get_num_threads(), "wait_policy": wait_policy,
                       **{k: max(v) for k, v in runs.items()}}))
 
 
@@ -140,7 +140,9 @@ def bench_order(first: tuple[str, ...] = ("plex_ma", "torch", "numba"), rounds: 
     processes, alternately (see the module docstring)."""
     measures = ("single", "vector") + (("torch_env",) if torch_env else ())
     measures += tuple(m + "_cpu" for m in measures)
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}  # what ``import plex_ma`` set
+    env = dict(os.environ)
+    if plex_ma._set_wait_policy:  # the caller's environment, not the one this command chose
+        del env["OMP_WAIT_POLICY"]
     results: dict[str, list[dict]] = {m: [] for m in first}
     for r in range(rounds):
         for m in first[r % len(first):] + first[:r % len(first)]:
@@ -156,7 +158,7 @@ def bench_order(first: tuple[str, ...] = ("plex_ma", "torch", "numba"), rounds: 
             "resolution": resolution, "steps_per_second": median,
             "ratio": {m: {k: v[k] / ref[k] for k in measures} for m, v in median.items()},
             "threading_layer": {m: sorted({x["threading_layer"] for x in rs}) for m, rs in results.items()},
-            "warned": {m: any(x["warned"] for x in rs) for m, rs in results.items()},
+            "wait_policy": {m: sorted({str(x["wait_policy"]) for x in rs}) for m, rs in results.items()},
             "identical": len({x["digest"] for rs in results.values() for x in rs}) == 1,
             "runs": results, "machine": machine()}
 

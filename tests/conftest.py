@@ -5,7 +5,10 @@ import sys
 
 import pytest
 
-import plex_ma  # noqa: F401  (before torch: its OpenMP wait policy, see plex_ma/__init__.py)
+# The suite's torch waits passively, as plex_ma's commands do: its spinning threads would
+# fight the simulator's on this 2-core machine (docs/performance.md). Read when torch loads.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import torch  # noqa: E402
 from hypothesis import settings  # noqa: E402
 

@@ -1,8 +1,8 @@
 """Import order does not matter: the simulator's kernels run on numba's workqueue threading
 layer (not GNU OpenMP) whatever was imported first, give the same results on every layer
 and with or without threads, survive fork(), and keep their speed with torch imported
-first; plex_ma warns when torch came first (torch's own OpenMP runtime, which it cannot
-reach any more)."""
+first; a plain ``import plex_ma`` leaves torch's OpenMP runtime alone, and only plex_ma's
+own commands (``python -m plex_ma.<module>``) make it wait passively."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from plex_ma.envs.sim import kernels as K
 from .test_sim_helpers import bank_of, small_house
 
 def fresh_env(**extra: str) -> dict:
-    """This process's environment without what ``import plex_ma`` set in it."""
+    """This process's environment without the wait policy tests/conftest.py set in it."""
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     return {**env, **extra}
 
@@ -38,33 +38,56 @@ digest = hashlib.sha256(b"".join(np.ascontiguousarray(v).tobytes() for v in obs.
 """
 
 
-def test_import_order_keeps_the_env_speed():
+def test_import_order_keeps_the_speed(monkeypatch):
     """``python -m plex_ma.bench order``: torch imported first against plex_ma first, in
-    fresh processes. The factor is generous (this runs beside other tests on 2 cores); a
-    kernel layer that spins, as GNU OpenMP did, costs several times that."""
-    out = bench_order(("plex_ma", "torch"), rounds=1, steps=150, num_envs=8, resolution=64, blocks=3,
-                      torch_env=False)
+    fresh processes, the envs alone and with a CNN's forward pass. The factor is generous
+    (this runs beside other tests on 2 cores); a kernel layer that spins, as GNU OpenMP did,
+    or a wait policy that depends on the order (torch beside busy processes) costs several
+    times that."""
+    monkeypatch.delenv("OMP_WAIT_POLICY")  # as in a fresh shell
+    out = bench_order(("plex_ma", "torch"), rounds=1, steps=150, num_envs=8, resolution=64, blocks=3)
     assert out["threading_layer"] == {"plex_ma": ["workqueue"], "torch": ["workqueue"]}
-    assert out["warned"] == {"plex_ma": False, "torch": True}
+    assert out["wait_policy"] == {"plex_ma": ["None"], "torch": ["None"]}
     assert out["identical"]
-    for measure in ("single", "vector"):
+    for measure in ("single", "vector", "torch_env"):
         best = max(out["ratio"]["torch"][measure], out["ratio"]["torch"][measure + "_cpu"])
         assert best > 1 / 3, (measure, out["steps_per_second"])
 
 
 def test_a_chosen_layer_is_kept_and_gives_the_same_results():
-    """NUMBA_THREADING_LAYER set by the user wins (here GNU OpenMP), and with
-    OMP_WAIT_POLICY exported torch first draws no warning; the kernels' results equal this
-    process's (workqueue)."""
+    """NUMBA_THREADING_LAYER set by the user wins (here GNU OpenMP), importing plex_ma after
+    torch warns of nothing, and the kernels' results equal this process's (workqueue)."""
     code = "import warnings; warnings.simplefilter('error'); import torch, plex_ma, numba\n" + STEPS + \
         "print(numba.threading_layer(), digest)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                         env=fresh_env(OMP_WAIT_POLICY="PASSIVE", NUMBA_THREADING_LAYER="omp"))
+                         env=fresh_env(NUMBA_THREADING_LAYER="omp"))
     assert out.returncode == 0, out.stderr
     scope: dict = {}
     exec(STEPS, scope)
     assert K.numba.threading_layer() == "workqueue"
     assert out.stdout.split() == ["omp", scope["digest"]]
+
+
+@pytest.mark.parametrize("argv0, argv, command", [
+    ("-m", ["python", "-m", "plex_ma.train", "--preset", "smoke"], True),
+    ("-m", ["python", "-X", "dev", "-mplex_ma.bench", "order"], True),
+    ("-m", ["python", "-m", "mypkg.train"], False),  # another program that imports plex_ma
+    ("-c", ["python", "-c", "import plex_ma"], False),
+    ("train.py", ["python", "train.py", "-m", "plex_ma.x"], False),
+])
+def test_only_plex_ma_commands_choose_the_wait_policy(monkeypatch, argv0, argv, command):
+    import plex_ma
+
+    monkeypatch.setattr(sys, "argv", [argv0])
+    monkeypatch.setattr(sys, "orig_argv", argv)
+    assert plex_ma._run_as_command() is command
+
+
+def test_a_plain_import_leaves_torch_alone():
+    code = "import os, plex_ma, torch; print(os.environ.get('OMP_WAIT_POLICY'))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=fresh_env())
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["None"]
 
 
 def test_async_make_vec_after_the_parent_stepped_an_env():
