@@ -1,6 +1,6 @@
 # Two entry points (see README): `make train` and `make test`. Both create or reuse a
-# local virtual environment in .venv and install torch==2.13.0 (CPU) before the package,
-# so pip never pulls the CUDA build.
+# local virtual environment in .venv and install torch==2.13.0 from pip's configured sources
+# before the package (the CPU build where they provide it; README's Install names its index).
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python

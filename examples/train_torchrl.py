@@ -261,8 +261,8 @@ def main(argv: list[str] | None = None) -> dict:
     else:
         env = SerialEnv(a.num_envs, [lambda i=i: make_env(config, a.seed + i) for i in range(a.num_envs)])
     env.reset()
-    # After the envs' first step: numba's OpenMP pool, which torch shares, resets the
-    # thread count when it starts. Small batches run fastest on one thread.
+    # Small batches run fastest on one thread. Set after the envs' first step: on numba's OpenMP
+    # layer (NUMBA_THREADING_LAYER=omp) the kernels' pool, shared with torch, resets the count.
     torch.set_num_threads(1)
     parts = build(env if a.num_envs == 1 else make_env(config), a.lr)
     # The policies have no memory: no InitTracker transform needed.

@@ -12,14 +12,21 @@ __version__ = "0.1.0"
 # loads it, so only the program can choose it; a plain ``import plex_ma`` leaves torch as it
 # is, and the order of imports does not matter (the simulator does not use OpenMP).
 def _run_as_command() -> bool:
-    """True while ``python -m plex_ma.<module>`` imports this package (``sys.argv[0]`` is
-    ``-m`` while the module is located; ``sys.orig_argv`` names it)."""
+    """True while ``python [options] -m plex_ma.<module>`` imports this package
+    (``sys.argv[0]`` is ``-m`` while the module is located; ``sys.orig_argv`` names it)."""
     if _sys.argv[:1] != ["-m"]:
         return False
-    argv = getattr(_sys, "orig_argv", [])
-    for arg, nxt in zip(argv, argv[1:] + [""]):
-        if arg.startswith("-m"):
-            return (arg[2:] or nxt).split(".")[0] == "plex_ma"
+    args = iter(getattr(_sys, "orig_argv", [])[1:])
+    for arg in args:
+        if arg == "--check-hash-based-pycs":  # the one long option with a value
+            next(args, None)
+        elif arg.startswith("-") and not arg.startswith("--"):
+            for i, flag in enumerate(arg[1:], 2):  # short flags, combined as in -um
+                if flag in "mcWX":  # the flags with a value: in the rest of arg, or next
+                    value = arg[i:] or next(args, "")
+                    if flag in "mc":
+                        return flag == "m" and value.split(".")[0] == "plex_ma"
+                    break
     return False
 
 

@@ -142,7 +142,7 @@ def bench_order(first: tuple[str, ...] = ("plex_ma", "torch", "numba"), rounds: 
     measures += tuple(m + "_cpu" for m in measures)
     env = dict(os.environ)
     if plex_ma._set_wait_policy:  # the caller's environment, not the one this command chose
-        del env["OMP_WAIT_POLICY"]
+        env.pop("OMP_WAIT_POLICY", None)
     results: dict[str, list[dict]] = {m: [] for m in first}
     for r in range(rounds):
         for m in first[r % len(first):] + first[:r % len(first)]:

@@ -69,7 +69,7 @@ from plex_ma.envs.vector import EXECUTOR, PlexVectorEnv
 def machine() -> dict:
 
     return {"cpus": os.cpu_count(), "numba_threads": numba.get_num_threads(), "platform": platform.platform(),
-            "python": platform.python_version()}
+            "python": platform.python_version(), "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")}
 
 
 class _RawSim:

@@ -6,6 +6,7 @@ own commands (``python -m plex_ma.<module>``) make it wait passively."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -71,6 +72,9 @@ def test_a_chosen_layer_is_kept_and_gives_the_same_results():
 @pytest.mark.parametrize("argv0, argv, command", [
     ("-m", ["python", "-m", "plex_ma.train", "--preset", "smoke"], True),
     ("-m", ["python", "-X", "dev", "-mplex_ma.bench", "order"], True),
+    ("-m", ["python", "-um", "plex_ma.train"], True),
+    ("-m", ["python", "-W", "error", "-Xdev", "-Om", "plex_ma"], True),
+    ("-m", ["python", "-m", "cProfile", "-m", "plex_ma.train"], False),  # cProfile's program
     ("-m", ["python", "-m", "mypkg.train"], False),  # another program that imports plex_ma
     ("-c", ["python", "-c", "import plex_ma"], False),
     ("train.py", ["python", "train.py", "-m", "plex_ma.x"], False),
@@ -83,11 +87,17 @@ def test_only_plex_ma_commands_choose_the_wait_policy(monkeypatch, argv0, argv, 
     assert plex_ma._run_as_command() is command
 
 
-def test_a_plain_import_leaves_torch_alone():
+def test_a_plain_import_leaves_torch_alone_and_commands_wait_passively():
     code = "import os, plex_ma, torch; print(os.environ.get('OMP_WAIT_POLICY'))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=fresh_env())
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["None"]
+    bench = [sys.executable, "-m", "plex_ma.bench", "sim", "--num-envs", "1", "--resolution", "8", "--steps", "1",
+             "--num-scenes", "1", "--json"]
+    for env, policy in ((fresh_env(), "PASSIVE"), (fresh_env(OMP_WAIT_POLICY="ACTIVE"), "ACTIVE")):
+        out = subprocess.run(bench, capture_output=True, text=True, timeout=300, env=env)
+        assert out.returncode == 0, out.stderr
+        assert json.loads(out.stdout)["machine"]["omp_wait_policy"] == policy
 
 
 def test_async_make_vec_after_the_parent_stepped_an_env():

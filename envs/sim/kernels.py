@@ -34,8 +34,8 @@ del _alias
 # The parallel kernels run on numba's "workqueue" threading layer, not on GNU OpenMP
 # (numba's default where it finds no TBB). On OpenMP they ran inside torch's OpenMP
 # runtime (torch loads its libgomp into the global symbol scope, and numba's OpenMP layer
-# binds to it): imported after torch, plex_ma could no longer make its threads wait
-# passively, they spun, and beside any other busy process a vector env ran up to 30x
+# binds to it): with torch imported first they waited as torch's runtime had been set up
+# (spinning, by default), and beside any other busy process a vector env ran up to 30x
 # slower; fork() after a kernel killed the child ("fork() called from a process already
 # using GNU OpenMP"), which broke gymnasium's async vector envs. workqueue's threads sleep
 # on a condition variable between kernels, survive fork() and read no OMP_* setting, so
