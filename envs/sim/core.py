@@ -31,6 +31,7 @@ import math
 import numpy as np
 
 from . import kernels as K
+from .kernels import wrap_angle
 from .bank import SceneBank
 from .episodes import Episode, Geodesics
 from .scene import AGENT_HEIGHT, CEILING_HEIGHT
@@ -38,11 +39,6 @@ from .scene import AGENT_HEIGHT, CEILING_HEIGHT
 STOP, MOVE_FORWARD, TURN_LEFT, TURN_RIGHT = 0, 1, 2, 3
 ACTION_NAMES = ("STOP", "MOVE_FORWARD", "TURN_LEFT", "TURN_RIGHT")
 NUM_ACTIONS = len(ACTION_NAMES)
-
-
-def wrap_angle(a):
-    """An angle in radians (a float or an array) wrapped to [-pi, pi)."""
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 MIN_RESOLUTION, MAX_RESOLUTION = 8, 1024  # px: the image sizes the renderer takes
@@ -74,7 +70,7 @@ class BatchedSim:
     Args:
         bank: the scenes the worlds live in.
         num_worlds: N.
-        resolution: square image size in pixels (>= 8).
+        resolution: square image size in pixels (8 to 1024).
         pose_noise: (position std in m, heading std in rad) of the GPS+compass noise.
         egomap: keep ego maps (off for the flat baselines, which never read them).
         seed: seeds the pose noise.

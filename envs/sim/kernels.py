@@ -83,6 +83,14 @@ INF = 1e30
 # Grid helpers
 
 
+def wrap_angle(a):
+    """An angle in radians (a float or an array) wrapped to [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+_wrap = njit(cache=True, inline="always")(wrap_angle)
+
+
 @njit(cache=True, inline="always")
 def _cell(ox, oy, cs, x, y):
     return int(math.floor((y - oy) / cs)), int(math.floor((x - ox) / cs))
@@ -344,9 +352,9 @@ def move(nav, g_off, g_h, g_w, g_ox, g_oy, cs, scene_idx, pos, heading, actions,
         a = actions[wi]
         collided[wi] = False
         if a == 2:
-            heading[wi] = (heading[wi] + turn + math.pi) % (2 * math.pi) - math.pi
+            heading[wi] = _wrap(heading[wi] + turn)
         elif a == 3:
-            heading[wi] = (heading[wi] - turn + math.pi) % (2 * math.pi) - math.pi
+            heading[wi] = _wrap(heading[wi] - turn)
         elif a == 1:
             s = scene_idx[wi]
             off = g_off[s]

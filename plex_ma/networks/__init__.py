@@ -8,7 +8,7 @@ One module per part:
 - ``executor``: :class:`Executor` and its RGB-D CNN, :class:`RGBDEncoder`;
 - ``memory``: the recurrent memories, :class:`GRUMemory` and :class:`SMTMemory`;
 - ``flat``: the flat baselines' :class:`FlatPolicy` and :class:`FlatMapPolicy`;
-- ``common``: what they share (``layer_init``, ``encode_polar``).
+- ``common``: what they share (``layer_init``, ``encode_polar``, ``wrap_angle``, ``as_tensor``).
 
 Observations are dicts of tensors (numpy arrays are accepted and converted) with a
 leading batch dimension:
