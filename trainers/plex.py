@@ -142,7 +142,7 @@ class PlexTrainer(Trainer):
         """Book-keeping of one round of planner decisions: episodes ended by a planner stop,
         and (when the planner learns) its transitions."""
         self._count_episodes(d.result)
-        if self._learn_planner:
+        if self.driver.planner.learns:
             out = d.out
             self.decisions.decide(d.rows, d.obs, out["stop"], out["raw_subgoal"], out["log_prob"], out["value"])
             self._planner_rewards(d.result, executor_step=False)
@@ -223,7 +223,7 @@ class PlexTrainer(Trainer):
             # Success over the turns whose sub-goal was not already within reach at the start.
             counted = res.executor_turn_end & (self.turn_d0 >= self.env.config.subgoal_radius)
             self.executor_success.extend(res.executor_reached[counted].tolist())
-            if self._learn_planner:
+            if self.driver.planner.learns:
                 self._planner_rewards(res)
             self._count_episodes(res)
             self.step += n * self.dist.world_size  # total over all workers
@@ -254,13 +254,12 @@ class PlexTrainer(Trainer):
                 self.env.close()
                 self.stats = EpisodeStats()
                 self._make_driver()
-            self._learn_planner = self.driver.planner.learns
             buf = self._rollout(clock)
             t0 = time.perf_counter()
             metrics = {"phase": PHASES[self.phase.name]}
             # the planner's update: on the second thread, if there is one, from here on (the
             # all_true check is a collective, so it stays on this thread)
-            args = (self._learn_planner and self._planner_ready(), torch.get_num_threads())
+            args = (self.driver.planner.learns and self._planner_ready(), torch.get_num_threads())
             job = self.pool.submit(self._learn_planner_step, *args) if self.pool is not None else None
             t1 = time.perf_counter()
             if buf is not None:
