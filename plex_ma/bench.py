@@ -71,16 +71,15 @@ from plex_ma.trainers.base import build_policies
 
 # A child of ``bench order``: imports ``argv[1]`` before plex_ma, then times the envs.
 _ORDER_CHILD = """
-import importlib, os, sys
+import importlib, sys
 importlib.import_module(sys.argv[1])
 import plex_ma
 from plex_ma.bench import order_child
-order_child(*sys.argv[2:], wait_policy=os.environ.get("OMP_WAIT_POLICY"))
+order_child(*sys.argv[2:])
 """
 
 
-def order_child(steps: str, num_envs: str, resolution: str, blocks: str, torch_env: str,
-                wait_policy: str | None) -> None:
+def order_child(steps: str, num_envs: str, resolution: str, blocks: str, torch_env: str) -> None:
     """One child of ``bench order`` (run after its first import): prints one JSON line."""
     steps, num_envs, resolution, blocks = int(steps), int(num_envs), int(resolution), int(blocks)
     cfg = dict(resolution=resolution, num_scenes=4, max_steps=200)
@@ -129,7 +128,7 @@ def order_child(steps: str, num_envs: str, resolution: str, blocks: str, torch_e
     for v in venv.step(np.ones(num_envs, np.int64))[0].values():
         digest.update(np.ascontiguousarray(v).tobytes())
     print(json.dumps({"threading_layer": numba.threading_layer(), "digest": digest.hexdigest()[:16],
-                      "torch_threads": torch.get_num_threads(), "wait_policy": wait_policy,
+                      "torch_threads": torch.get_num_threads(), "wait_policy": os.environ.get("OMP_WAIT_POLICY"),
                       **{k: max(v) for k, v in runs.items()}}))
 
 
