@@ -86,7 +86,7 @@ class TrainConfig:
     gae_lambda: float = 0.95
     """GAE lambda"""
     ppo_epochs: int = 1
-    """PPO epochs per update"""
+    """PPO epochs per update (PLEX's; the cpu preset gives the flat methods 4)"""
     num_minibatches: int = 2
     """minibatches per PPO epoch (the executor's and flat agent's split the worlds, the planner's its decisions)"""
     clip: float = 0.2
