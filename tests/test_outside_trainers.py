@@ -1,7 +1,7 @@
 """The recipes of docs/trainers.md for Stable-Baselines3, skrl and RLlib: each example runs
-a few hundred steps where its library is installed, and is skipped otherwise (none of them
-is a dependency of plex-ma: they are not in the test extras, so they never replace the
-pinned torch)."""
+a few hundred steps where its library is installed, and is skipped otherwise. The test
+extras install Stable-Baselines3 and skrl (they keep the pinned torch); RLlib is not in
+them (ray pins its own gymnasium), so its test runs only where a user installed it."""
 
 from __future__ import annotations
 
