@@ -33,10 +33,10 @@ import numba
 import numpy as np
 
 from .actions import InvalidAction, discrete, real
-from .sim import BatchedSim, Episode, Geodesics, scene_bank
+from .sim import BatchedSim, Episode, Geodesics, SceneBank, scene_bank
 from .sim.core import (ACTION_NAMES, NUM_ACTIONS, POSE_NOISE_RULE, RESOLUTION_RULE, STOP, check_pose_noise,
                         check_resolution)
-from .sim.episodes import default_episode_file, load_episodes, sample_episode
+from .sim.episodes import EpisodeFileError, default_episode_file, load_episodes, sample_episode
 
 PLANNER, EXECUTOR = 0, 1
 ELI_DIM = 128
@@ -180,26 +180,31 @@ class OneWorldEnv:
         return self.worlds.sim.episodes[0]
 
 
+def worlds_data(cfg: NavConfig) -> tuple[SceneBank, list[Episode] | None]:
+    """The scene bank of a config and its fixed episodes (None: sampled). Raises SceneError or
+    EpisodeFileError naming the bad scene source or episode file."""
+    bank = scene_bank(cfg.scenes, cfg.split, cfg.num_scenes)
+    path = cfg.episodes_file
+    if path is None and cfg.split != "train":
+        path = _default_episode_file(cfg.scenes, cfg.split)
+    if path is None:
+        return bank, None
+    known = set(bank.scene_ids)
+    eps = [e for e in load_episodes(path) if e.scene_id in known]
+    if not eps:
+        raise EpisodeFileError(f"episode file {path}: none of its scenes belong to {cfg.scenes}/{cfg.split}")
+    return bank, eps
+
+
 class _Worlds:
     """Episodes, metrics and infos of N worlds; subclasses add the agents' rules."""
 
     def __init__(self, cfg: NavConfig, num_worlds: int, seed: int | None, egomap: bool):
         self.cfg = cfg
         self.n = int(num_worlds)
-        self.bank = scene_bank(cfg.scenes, cfg.split, cfg.num_scenes)
+        self.bank, self.fixed_episodes = worlds_data(cfg)
         self.sim = BatchedSim(self.bank, self.n, resolution=cfg.resolution, pose_noise=cfg.pose_noise, egomap=egomap)
         self.geo = Geodesics(self.bank)
-        path = cfg.episodes_file
-        if path is None and cfg.split != "train":
-            path = _default_episode_file(cfg.scenes, cfg.split)
-        self.fixed_episodes: list[Episode] | None = None
-        if path is not None:
-            eps = load_episodes(path)
-            known = set(self.bank.scene_ids)
-            eps = [e for e in eps if e.scene_id in known]
-            if not eps:
-                raise ValueError(f"episode file {path}: none of its scenes belong to {cfg.scenes}/{cfg.split}")
-            self.fixed_episodes = eps
         self._next_fixed = 0
         self.steps = np.zeros(self.n, np.int64)
         self.collisions = np.zeros(self.n, np.int64)

@@ -33,12 +33,26 @@ def empty_dir(tmp_path):
     return d
 
 
+# smoke has no warm-up; cpu starts in the open-room warm-up, which must not hide bad main scenes
+@pytest.mark.parametrize("preset", ["smoke", "cpu"])
 @pytest.mark.parametrize("scenes", ["missing", "empty"])
-def test_train_bad_scenes_leave_no_run_dir(tmp_path, empty_dir, scenes):
+def test_train_bad_scenes_leave_no_run_dir(tmp_path, empty_dir, scenes, preset):
     arg, says = (MISSING, "does not exist") if scenes == "missing" else (str(empty_dir), "no plan files")
-    out = run("plex_ma.train", "--preset", "smoke", "--scenes", arg, "--run-dir", str(tmp_path / "run"))
+    out = run("plex_ma.train", "--preset", preset, "--total-steps", "64", "--scenes", arg,
+              "--run-dir", str(tmp_path / "run"))
     assert out.returncode == 2
     assert_one_line_error(out.stderr, arg, says)
+    assert not (tmp_path / "run").exists()
+
+
+def test_train_episodes_of_other_scenes_is_one_line(tmp_path):
+    """The val split's episode file for training on the train split, with the cpu preset's warm-up."""
+    from plex_ma.envs.sim.episodes import default_episode_file
+    path = str(default_episode_file("procgen", "val"))
+    out = run("plex_ma.train", "--preset", "cpu", "--total-steps", "64", "--episodes-file", path,
+              "--run-dir", str(tmp_path / "run"))
+    assert out.returncode == 2
+    assert_one_line_error(out.stderr, path, "none of its scenes belong to procgen/train")
     assert not (tmp_path / "run").exists()
 
 

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from plex_ma.config import PRESETS, TrainConfig, from_dict, parse, preset_defaults, replace, setting, validate
+from plex_ma.envs.sim.episodes import default_episode_file
 from plex_ma.evaluate import main as evaluate_main
 from plex_ma.trainers.checkpoint import CheckpointError, atomic_save, find_resumable, load_checkpoint, save_checkpoint
 from plex_ma.trainers import make_trainer
@@ -411,16 +412,22 @@ def test_executor_alone_learns_to_reach_subgoals(tmp_path):
     assert np.mean(curve[-3:]) >= 0.6, curve[-10:]
 
 
-def test_warmup_on_other_scenes_then_training_scenes(tmp_path):
+@pytest.mark.parametrize("fixed", [False, True])
+def test_warmup_on_other_scenes_then_training_scenes(tmp_path, fixed):
     """--warmup-scenes: random sub-goals in open rooms during the warm-up (short episodes),
-    then the planner learns on the training scenes."""
-    cfg = tiny(tmp_path, warmup_scenes="open-room", planner_warmup_steps=64, warmup_max_steps=8, total_steps=160)
+    then the planner learns on the training scenes (their fixed episodes with --episodes-file;
+    the warm-up samples its own)."""
+    episodes = dict(split="val", episodes_file=str(default_episode_file("procgen", "val"))) if fixed else {}
+    cfg = tiny(tmp_path, warmup_scenes="open-room", planner_warmup_steps=64, warmup_max_steps=8, total_steps=160,
+               **episodes)
     t = make_trainer(cfg)
     assert t.env.config.scenes == "open-room" and t.env.config.max_steps == 8
+    assert t.env.worlds.fixed_episodes is None
     t.train()
     t.close()
     assert t.env.config.scenes == "procgen" and t.env.config.max_steps == cfg.env.max_steps
     assert all(w.scene_id.startswith("procgen") for w in t.env.worlds.sim.episodes)
+    assert (t.env.worlds.fixed_episodes is not None) == fixed
     assert t.updates["planner"] >= 1  # the planner trained after the warm-up
 
 

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from plex_ma.config import TrainConfig
-from plex_ma.envs.rules import PLANNER
+from plex_ma.envs.rules import PLANNER, worlds_data
 from plex_ma.envs.vector import PlexVectorEnv
 from plex_ma.networks import Executor, Planner
 
@@ -124,7 +124,9 @@ class PlexTrainer(Trainer):
         self.phase = self.curriculum.phase_at(self.step)
         kw = env_kwargs(cfg)
         if self.phase.warm_env:
-            kw |= {"scenes": cfg.warmup_scenes, "num_scenes": None, "max_steps": cfg.warmup_max_steps}
+            worlds_data(cfg.env)  # the main phase's scenes and episodes load now: a bad one fails before the warm-up
+            kw |= {"scenes": cfg.warmup_scenes, "num_scenes": None, "episodes_file": None,
+                   "max_steps": cfg.warmup_max_steps}
         self.env = PlexVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["executor"] + self.dist.seed_offset,
                                  **kw)
         self.driver = PlexDriver(
