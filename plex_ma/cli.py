@@ -5,7 +5,9 @@ argparse types that name a bad value."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from pathlib import Path
 from typing import NoReturn
 
 
@@ -50,3 +52,31 @@ def probability(text: str) -> float:
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"must be a probability in [0, 1], got {value}")
     return value
+
+
+def unwritable(path: str, directory: bool = False) -> str | None:
+    """Why a command could not write ``path`` (a file, or a directory it creates), or None:
+    checked before any work, so a bad output path costs nothing and leaves nothing behind."""
+    p = Path(path).expanduser()
+    if p.exists() and p.is_dir() != directory:
+        return f"{path!r} is {'not a directory' if directory else 'a directory'}"
+    up = p if p.exists() and directory else p.parent
+    while not up.exists():
+        up = up.parent
+    if not up.is_dir():
+        return f"{path!r}: {str(up)!r} is not a directory"
+    if not os.access(up, os.W_OK | os.X_OK) or (p.is_file() and not os.access(p, os.W_OK)):
+        return f"{path!r}: not writable"
+    return None
+
+
+def output_path(directory: bool = False):
+    """An argparse type: a path the command will write (see :func:`unwritable`)."""
+
+    def parse(text: str) -> str:
+        why = unwritable(text, directory)
+        if why:
+            raise argparse.ArgumentTypeError(why)
+        return text
+
+    return parse

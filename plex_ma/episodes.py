@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plex_ma.cli import Parser
+from plex_ma.cli import Parser, output_path
 from plex_ma.envs.sim import EpisodeFileError, SceneError, generate_episodes, load_episodes, save_episodes, scene_bank
 from plex_ma.envs.sim.episodes import CLOSE_FAR_SPLIT, DEFAULT_FILES, default_episode_file
 
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     pm.add_argument("--num-scenes", type=int, default=None,
                     help="number of scenes of the split (default: the split's default count)")
     pm.add_argument("--seed", type=int, required=True, help="sampling seed (non-negative)")
-    pm.add_argument("--out", required=True, help="output path (.json.gz)")
+    pm.add_argument("--out", required=True, type=output_path(), help="output path (.json.gz)")
     ps = sub.add_parser("show", help="summarise an episode file")
     ps.add_argument("path", help="episode file (.json.gz)")
     a = p.parse_args(argv)

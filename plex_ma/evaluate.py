@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from plex_ma.cli import Parser, fail, integer
+from plex_ma.cli import Parser, fail, integer, output_path
 from plex_ma.config import DEVICE_HELP, TrainConfig
 from plex_ma.envs.sim import EpisodeFileError, SceneError, load_episodes
 from plex_ma.trainers.checkpoint import CheckpointError
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--scenes", default=None, help="scene source (default: the one trained on)")
     p.add_argument("--episodes-file", default=None, help="a fixed episode file instead of the split's default")
     p.add_argument("--num-envs", type=integer(1), default=8, help="worlds run in parallel")
-    p.add_argument("--json", default=None, help="write the summary and per-episode results here")
+    p.add_argument("--json", default=None, type=output_path(), help="write the summary and per-episode results here")
     p.add_argument("--record", default=None, help="also record the episodes to this .rrd file (rerun)")
     p.add_argument("--torch-threads", type=int, default=1,
                    help="torch threads (1: small batches run fastest on a small, shared machine)")

@@ -25,7 +25,7 @@ import sys
 import torch
 from PIL import Image
 
-from plex_ma.cli import Parser, fail, integer
+from plex_ma.cli import Parser, fail, integer, output_path
 from plex_ma.config import DEVICE_HELP, TrainConfig, replace
 from plex_ma.envs.sim import EpisodeFileError, SceneError
 from plex_ma.trainers.checkpoint import CheckpointError
@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--executor", choices=EXECUTOR_KINDS, default=None,
                    help="PLEX executor (default: the checkpoint's; oracle = ground truth)")
     p.add_argument("--episodes", type=integer(1), default=1, help="episodes to record")
-    p.add_argument("--out", required=True, help="the .rrd file to write")
+    p.add_argument("--out", required=True, type=output_path(), help="the .rrd file to write")
     p.add_argument("--split", choices=["train", "val", "test"], default="val", help="scene split")
     p.add_argument("--scenes", default=None, help="scene source (default: the checkpoint's, or procgen)")
     p.add_argument("--resolution", type=int, default=64, help="image size (--policy random only)")
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     p.add_argument("--jpeg-quality", type=int, default=None, help="store RGB images as JPEG of this quality")
     p.add_argument("--no-images", action="store_true", help="leave out the RGB, depth and ego map images")
     p.add_argument("--spawn", action="store_true", help="also stream live to a Rerun viewer (needs a display)")
-    p.add_argument("--topdown-png", default=None, help="also write the top-down picture of the last episode here")
+    p.add_argument("--topdown-png", default=None, type=output_path(), help="also write the top-down picture of the last episode here")
     p.add_argument("--device", default="auto", help=DEVICE_HELP)
     a = p.parse_args(argv)
     try:

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from plex_ma.cli import Parser, output_path
 from plex_ma.envs.sim import r2v
 from plex_ma.envs.sim.bank import SceneBank
 from plex_ma.envs.sim.episodes import CLOSE_FAR_SPLIT, MAX_GEODESIC, MIN_GEODESIC, Geodesics, sample_episode
@@ -318,7 +319,7 @@ def _scale(s: str):
 
 def main(argv: list[str] | None = None) -> int:
 
-    p = argparse.ArgumentParser(prog="python -m plex_ma.scenes", description=__doc__.split("\n\n")[0])
+    p = Parser(prog="python -m plex_ma.scenes", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     splits = ["all", "train", "val", "test"]
     c = sub.add_parser("check", help="how many scenes load, why not, areas and episode distances")
@@ -331,10 +332,10 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--scale", type=_scale, default=DEFAULT_SCALE, help="metres per pixel of plans, or 'auto'")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
-    c.add_argument("--json", default=None, help="write the summaries and per-scene records here")
+    c.add_argument("--json", default=None, type=output_path(), help="write the summaries and per-scene records here")
     r = sub.add_parser("render", help="top-down PNGs of a source's scenes")
     r.add_argument("source", help="r2v, procgen, or a directory of plan files")
-    r.add_argument("--out", required=True)
+    r.add_argument("--out", required=True, type=output_path(directory=True))
     r.add_argument("--count", type=int, default=6)
     r.add_argument("--split", choices=splits, default="all")
     r.add_argument("--ids", default=None, help="comma-separated scene ids (default: the first that load)")

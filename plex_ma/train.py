@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import sys
 
-from plex_ma.cli import fail
+from plex_ma.cli import fail, unwritable
 from plex_ma.config import parse
 from plex_ma.envs.sim import EpisodeFileError, SceneError
 from plex_ma.trainers import distributed, make_trainer
@@ -35,6 +35,8 @@ def main(argv: list[str] | None = None) -> dict:
         cfg = parse(argv)
     except ValueError as e:  # a bad value: one line naming the flag, no traceback
         fail(e)
+    if why := unwritable(cfg.run_dir, directory=True):
+        fail(f"--run-dir {why}")
     try:
         device = resolve_device(cfg.device)
     except DeviceError as e:

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from plex_ma import bench, episodes, evaluate, record, train
+from plex_ma import bench, episodes, evaluate, record, scenes, train
 
 MISSING = "/nonexistent-plex-ma-scenes"
 
@@ -110,6 +110,31 @@ def test_bad_values_are_one_line(tmp_path, capsys, main, argv, names):
     assert code == 2
     assert_one_line_error(capsys.readouterr().err, *names)
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("main, argv, names", [
+    (train.main, ["--preset", "smoke", "--run-dir", "FILE/run"], ["--run-dir", "FILE", "is not a directory"]),
+    (train.main, ["--preset", "smoke", "--run-dir", "FILE"], ["--run-dir", "FILE", "is not a directory"]),
+    (evaluate.main, ["--planner", "oracle", "--executor", "oracle", "--json", "FILE/e.json"], ["--json", "FILE"]),
+    (evaluate.main, ["--planner", "oracle", "--executor", "oracle", "--json", "DIR"], ["--json", "is a directory"]),
+    (record.main, ["--policy", "random", "--out", "FILE/r.rrd"], ["--out", "is not a directory"]),
+    (record.main, ["--policy", "random", "--out", "DIR/r.rrd", "--topdown-png", "FILE/t.png"], ["--topdown-png"]),
+    (episodes.main, ["make", "--split", "val", "--num-episodes", "2", "--seed", "0", "--out", "FILE/e.json.gz"],
+     ["--out", "is not a directory"]),
+    (scenes.main, ["render", "--source", "procgen", "--count", "1", "--out", "FILE"], ["--out", "is not a directory"]),
+])
+def test_unwritable_outputs_are_one_line(tmp_path, capsys, main, argv, names):
+    """An output path through a file, or a directory where a file goes: refused before any work."""
+    (tmp_path / "file").write_text("a file, not a directory")
+    subs = {"FILE": str(tmp_path / "file"), "DIR": str(tmp_path)}
+    argv = [a.replace("FILE", subs["FILE"]).replace("DIR", subs["DIR"]) for a in argv]
+    try:
+        code = main(argv)
+    except SystemExit as e:
+        code = e.code
+    assert code == 2
+    assert_one_line_error(capsys.readouterr().err, *[subs.get(n, n) for n in names])
+    assert [p.name for p in tmp_path.iterdir()] == ["file"]
 
 
 def test_train_help_names_the_module(capsys):
