@@ -13,6 +13,7 @@ value. :func:`replace` changes fields of either level by name.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import shlex
 from dataclasses import dataclass, field
@@ -21,6 +22,11 @@ from typing import Annotated, Literal, get_args
 import tyro
 
 from plex_ma.envs.rules import PlexConfig, make_config
+
+try:  # tyro's parse-error hook (tyro 1.x): a bad flag becomes one line instead of tyro's box
+    from tyro._errors import on_parse_error
+except ImportError:  # an older tyro: its box stays
+    on_parse_error = None
 
 # Where the trainer's env defaults differ from the env's own (the env's are the paper's, docs/spec.md).
 TRAIN_ENV = {"resolution": 48, "n_ex": 30, "subgoal_radius": 0.2, "executor_stop_penalty": -0.5,
@@ -282,8 +288,29 @@ def parse(argv: list[str] | None = None) -> TrainConfig:
     pre.add_argument("--preset", default="cpu")
     pre.add_argument("--method", default="plex-gru")
     known, _ = pre.parse_known_args(argv)
+    if known.method not in get_args(Method):
+        raise ValueError(f"argument --method: invalid choice {known.method!r}; choose from {list(get_args(Method))}")
     try:
         default = preset_defaults(known.preset, known.method)
     except ValueError:
-        default = TrainConfig()  # let tyro report the bad choice with its usual message
-    return validate(tyro.cli(TrainConfig, default=default, args=argv, prog="python -m plex_ma.train"))
+        default = TrainConfig()  # tyro reports the bad preset
+    with on_parse_error(_parse_error) if on_parse_error else contextlib.nullcontext():
+        cfg = tyro.cli(TrainConfig, default=default, args=argv, prog="python -m plex_ma.train")
+    return validate(cfg)
+
+
+def _parse_error(event) -> None:
+    """A tyro parse error as a ValueError of one line, naming the flag and the problem."""
+    arg = getattr(event, "argument", None)
+    where = f"argument {arg.display_name()}: " if arg is not None else ""
+    if getattr(event, "message", None):
+        raise ValueError(where + event.message)
+    if getattr(event, "choices", None):
+        raise ValueError(f"{where}invalid choice {event.value!r}; choose from {list(event.choices)}")
+    if getattr(event, "tokens", None):
+        raise ValueError(f"unrecognized arguments: {' '.join(event.tokens)}")
+    if getattr(event, "missing_arguments", None):
+        raise ValueError(f"missing arguments: {', '.join(a.arg.display_name() for a in event.missing_arguments)}")
+    if getattr(event, "reason", None) == "too_few_values":
+        raise ValueError(where + "expected a value")
+    # any other event: tyro's own message

@@ -86,6 +86,12 @@ def test_bad_scenes_in_every_cli(tmp_path, empty_dir, argv, names):
 
 @pytest.mark.parametrize("main, argv, names", [
     (train.main, ["--preset", "smoke", "--num-envs", "0"], ["--num-envs", "0"]),
+    (train.main, ["--total-steps", "many"], ["--total-steps", "many"]),  # tyro's parse errors, one line too
+    (train.main, ["--preset", "fast"], ["--preset", "fast", "smoke"]),
+    (train.main, ["--method", "ppo"], ["--method", "ppo", "plex-gru"]),
+    (train.main, ["--no-such-flag", "1"], ["unrecognized", "--no-such-flag"]),
+    (train.main, ["--planner", "teacher"], ["--planner", "teacher"]),
+    (train.main, ["--total-steps"], ["--total-steps", "expected a value"]),
     (evaluate.main, ["--planner", "oracle", "--executor", "oracle", "--num-envs", "0"], ["--num-envs", "0"]),
     (evaluate.main, ["--planner", "oracle", "--executor", "oracle", "--episodes", "many"], ["--episodes", "many"]),
     (evaluate.main, ["--episodes", "2"], ["--checkpoint"]),

@@ -383,12 +383,17 @@ def test_evaluate_cli_writes_json(tmp_path):
     assert all(r["scene_id"].startswith("procgen-val-") for r in res["per_episode"])
 
 
-def test_evaluate_rejects_a_bad_checkpoint(tmp_path, capsys):
+@pytest.mark.parametrize("content, says", [(b"\x00" * 100, "cannot be loaded"),
+                                            (b"garbage", "cannot be loaded"),
+                                            (None, "is a directory")], ids=["zeros", "garbage", "directory"])
+def test_evaluate_rejects_a_bad_checkpoint(tmp_path, capsys, content, says):
+    """Zeros, garbage (torch's errors for both run to many lines) or a directory: one line."""
     bad = tmp_path / "bad.pt"
-    bad.write_bytes(b"\x00" * 100)
+    bad.mkdir() if content is None else bad.write_bytes(content)
     with pytest.raises(SystemExit) as e:
         evaluate_main(["--checkpoint", str(bad), "--episodes", "1"])
-    assert e.value.code == 2 and "cannot be loaded" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and says in err and len(err.strip().splitlines()) == 1, err
 
 
 @pytest.mark.slow

@@ -104,12 +104,13 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     ``pretrained:NAME`` loads a shipped agent, its weights as float32."""
     path = resolve_checkpoint(path)
     if not path.is_file():
-        raise CheckpointError(f"checkpoint {path}: does not exist")
+        raise CheckpointError(f"checkpoint {path}: {'is a directory' if path.is_dir() else 'does not exist'}")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises several types for truncated / corrupt / unsafe files
+        why = (str(e).strip().splitlines() or [""])[0].split(". ")[0]  # torch's first sentence: one line
         raise CheckpointError(f"checkpoint {path}: cannot be loaded (corrupt, truncated or not a "
-                              f"plex-ma checkpoint): {type(e).__name__}: {e}") from None
+                              f"plex-ma checkpoint): {type(e).__name__}{': ' + why if why else ''}") from None
     if not isinstance(state, dict) or "config" not in state or "format" not in state:
         raise CheckpointError(f"checkpoint {path}: not a plex-ma checkpoint (missing 'config'/'format')")
     if state.get("pretrained"):
