@@ -13,20 +13,15 @@ value. :func:`replace` changes fields of either level by name.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import shlex
 from dataclasses import dataclass, field
 from typing import Annotated, Literal, get_args
 
 import tyro
+from tyro._errors import on_parse_error  # tyro's documented hook: a bad flag as one line, not tyro's box
 
 from plex_ma.envs.rules import PlexConfig, make_config
-
-try:  # tyro's parse-error hook (tyro 1.x): a bad flag becomes one line instead of tyro's box
-    from tyro._errors import on_parse_error
-except ImportError:  # an older tyro: its box stays
-    on_parse_error = None
 
 # Where the trainer's env defaults differ from the env's own (the env's are the paper's, docs/spec.md).
 TRAIN_ENV = {"resolution": 48, "n_ex": 30, "subgoal_radius": 0.2, "executor_stop_penalty": -0.5,
@@ -294,7 +289,7 @@ def parse(argv: list[str] | None = None) -> TrainConfig:
         default = preset_defaults(known.preset, known.method)
     except ValueError:
         default = TrainConfig()  # tyro reports the bad preset
-    with on_parse_error(_parse_error) if on_parse_error else contextlib.nullcontext():
+    with on_parse_error(_parse_error):
         cfg = tyro.cli(TrainConfig, default=default, args=argv, prog="python -m plex_ma.train")
     return validate(cfg)
 
