@@ -361,7 +361,7 @@ def test_saved_config_with_retired_settings_loads():
     assert not preset_defaults("paper").executor_no_reversal
     for flag in ("--teacher-subgoal-steps", "--planner-imitation-steps", "--planner-minibatches",
                  "--planner-entropy-coef", "--planner-target-kl", "--executor-goal-skip"):
-        with pytest.raises(SystemExit):
+        with pytest.raises(ValueError, match=f"unrecognized arguments: {flag}"):
             parse(["--preset", "smoke", flag, "100"])
 
 
