@@ -1,4 +1,5 @@
-"""Every user error of the command lines (train, evaluate, record, bench, episodes) is one
+"""Every user error of the command lines (train, evaluate, record, bench, episodes, scenes,
+experiments, pretrained) is one
 line on stderr naming the problem, with exit status 2 and no traceback, and a run that
 fails before its first update leaves no run dir behind (or the given one as it was)."""
 
@@ -9,7 +10,8 @@ import sys
 
 import pytest
 
-from plex_ma import bench, episodes, evaluate, record, scenes, train
+from plex_ma import bench, episodes, evaluate, pretrained, record, scenes, train
+from plex_ma.experiments.__main__ import main as experiments_main
 
 MISSING = "/nonexistent-plex-ma-scenes"
 
@@ -147,3 +149,42 @@ def test_train_help_names_the_module(capsys):
     out = run("plex_ma.train", "--help", cwd="/")
     assert out.returncode == 0
     assert out.stdout.startswith("usage: python -m plex_ma.train ")
+
+
+@pytest.mark.parametrize("argv, names", [
+    (["table1", "--arms", "ppo-lstm"], ["--arms", "ppo-lstm"]),
+    (["table1", "--budget", "0"], ["--budget", ">= 1"]),
+    (["table1", "--r2v-episodes", "-1"], ["--r2v-episodes", ">= 0"]),
+    (["table1", "--success-levels", "1.5"], ["--success-levels"]),
+    (["table1", "--runs-dir", "FILE/runs"], ["--runs-dir", "is not a directory"]),
+    (["fig3", "--starts", "1"], ["starts", ">= 2"]),
+    (["fig3", "--n-min", "9", "--n-max", "3"], ["n_min"]),
+    (["fig3", "--batch", "0"], ["batch", ">= 1"]),
+    (["prop1", "--walks", "1"], ["walks", ">= 2"]),
+    (["prop1", "--alphas", "2"], ["alphas"]),
+    (["no-such-experiment"], ["unknown experiment", "no-such-experiment"]),
+])
+def test_experiment_errors_are_one_line_and_write_nothing(tmp_path, capsys, argv, names):
+    (tmp_path / "file").write_text("a file, not a directory")
+    argv = [a.replace("FILE", str(tmp_path / "file")) for a in argv] + ["--out", str(tmp_path / "out")]
+    try:
+        code = experiments_main(argv)
+    except SystemExit as e:
+        code = e.code
+    assert code == 2
+    assert_one_line_error(capsys.readouterr().err, *names)
+    assert [p.name for p in tmp_path.iterdir()] == ["file"]
+
+
+@pytest.mark.parametrize("argv, names", [
+    (["--bogus"], ["unrecognized arguments", "--bogus"]),
+    (["export", "x.pt", "--name", "a", "--command", "c", "--notes", "{x"], ["--notes", "not JSON"]),
+    (["export", "x.pt", "--name", "a", "--command", "c", "--notes", "[1]"], ["--notes", "JSON object"]),
+])
+def test_pretrained_errors_are_one_line(capsys, argv, names):
+    try:
+        code = pretrained.main(argv)
+    except SystemExit as e:
+        code = e.code
+    assert code == 2
+    assert_one_line_error(capsys.readouterr().err, *names)

@@ -236,8 +236,14 @@ def test_table1_trains_and_evaluates_one_smoke_run(tmp_path):
     assert (keep / "eval_test_procgen.json").stat().st_mtime_ns == mtime
 
 
-def test_table1_rejects_bad_options(tmp_path):
-    with pytest.raises(SystemExit):
-        cli_main(["table1", "--out", str(tmp_path), "--budget", "0"])
-    with pytest.raises(SystemExit):
-        cli_main(["table1", "--out", str(tmp_path), "--arms", "ppo-lstm"])
+def test_table1_failed_run_is_one_line_naming_its_log(tmp_path):
+    """A child that fails (here train refusing --num-envs 0) stops the runner with one line
+    naming the child and its log (bad options of table1 itself: tests/test_cli_errors.py)."""
+    with pytest.raises(SystemExit) as e:
+        cli_main(["table1", "--out", str(tmp_path / "out"), "--runs-dir", str(tmp_path / "runs"), "--preset", "smoke",
+                  "--budget", "256", "--arms", "ppo-gru", "--seeds", "0", "--extra", "--num-envs", "0"])
+    log = tmp_path / "out" / "runs" / "ppo-gru-s0" / "train.log"
+    assert str(e.value) == f"table1: plex_ma.train exited with status 2; its log: {log}"
+    lines = log.read_text().splitlines()
+    assert lines[0].startswith("$ -m plex_ma.train --preset smoke --method ppo-gru --seed 0")
+    assert "--num-envs" in lines[-1] and ">= 1" in lines[-1]

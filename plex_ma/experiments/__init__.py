@@ -1,9 +1,11 @@
 """The paper's experiments, re-run in our own world: ``python -m plex_ma.experiments NAME``.
 
-Every experiment is a module with two functions:
+Every experiment is a module with three functions:
 
 * ``add_arguments(parser)``: its own command-line options (``--out`` and ``--seed`` are
   added for every experiment by the runner);
+* ``check(args)``: raise ValueError naming the first bad option (the runner prints it as one
+  line, exit status 2, before it creates ``out_dir``);
 * ``main(args, out_dir) -> dict``: run it, write its JSON results and PNG figures under
   ``out_dir`` (a :class:`pathlib.Path` that already exists) and return a short summary.
 
@@ -26,7 +28,7 @@ from types import ModuleType
 @dataclass(frozen=True)
 class Experiment:
     name: str
-    module: str  # dotted module path with add_arguments(parser) and main(args, out_dir)
+    module: str  # dotted module path with add_arguments(parser), check(args) and main(args, out_dir)
     help: str
 
     def load(self) -> ModuleType:
@@ -65,4 +67,4 @@ def default_out_dir(name: str) -> Path:
 register("fig3", "plex_ma.experiments.fig3", "Fig. 3: distance covered by a random policy vs. number of actions")
 register("prop1", "plex_ma.experiments.prop1", "Proposition 1: random-walk tail probabilities vs. Chernoff bounds")
 register("table1", "plex_ma.experiments.table1",
-         "Table 1, Fig. 4, Fig. 5a/b: the four methods and the no-ELI ablation at an equal step budget")
+         "Table 1, Fig. 4, Fig. 5a/b: PLEX, the flat baselines, the no-ELI ablation and the map control at one budget")

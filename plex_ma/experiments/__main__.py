@@ -6,19 +6,20 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
 from pathlib import Path
 
+from plex_ma.cli import Parser, output_path
+
 from . import REGISTRY, Experiment, default_out_dir
 
 
-def experiment_parser(exp: Experiment) -> argparse.ArgumentParser:
-    """The command line of one experiment (only its module is imported)."""
-    p = argparse.ArgumentParser(prog=f"python -m plex_ma.experiments {exp.name}", description=exp.help)
-    p.add_argument("--out", type=Path, default=None,
+def experiment_parser(exp: Experiment) -> Parser:
+    """The command line of one experiment (only its module is imported); its errors are one line."""
+    p = Parser(prog=f"python -m plex_ma.experiments {exp.name}", description=exp.help)
+    p.add_argument("--out", type=output_path(directory=True), default=None,
                    help=f"output directory (default: results/{exp.name}/ at the repository root)")
     p.add_argument("--seed", type=int, default=0, help="master seed; the results are deterministic in it")
     exp.load().add_arguments(p)
@@ -39,11 +40,17 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     name, rest = argv[0], argv[1:]
     if name not in REGISTRY:
-        print(f"unknown experiment {name!r}; known: {', '.join(REGISTRY)}", file=sys.stderr)
+        print(f"python -m plex_ma.experiments: error: unknown experiment {name!r}; known: {', '.join(REGISTRY)}",
+              file=sys.stderr)
         return 2
     exp = REGISTRY[name]
-    args = experiment_parser(exp).parse_args(rest)
-    out = (args.out if args.out is not None else default_out_dir(name)).resolve()
+    parser = experiment_parser(exp)
+    args = parser.parse_args(rest)
+    try:
+        exp.load().check(args)
+    except ValueError as e:
+        parser.error(str(e))
+    out = (Path(args.out) if args.out is not None else default_out_dir(name)).resolve()
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     summary = exp.load().main(args, out)

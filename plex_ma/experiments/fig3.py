@@ -77,8 +77,9 @@ class Fig3Config:
             raise ValueError(f"need 1 <= n_min <= n_max, got {self.n_min}, {self.n_max}")
         if self.mode not in ("independent", "prefix"):
             raise ValueError(f"mode must be 'independent' or 'prefix', got {self.mode!r}")
-        if self.batch < 1 or self.free_walks < 2:
-            raise ValueError("batch must be >= 1 and free_walks >= 2")
+        for name, least in (("batch", 1), ("free_walks", 2)):
+            if getattr(self, name) < least:
+                raise ValueError(f"{name} must be >= {least}, got {getattr(self, name)}")
 
 
 # ------------------------------------------------------------------------ geometry
@@ -346,11 +347,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--free-walks", type=int, default=d.free_walks, help="empty-floor reference walks")
 
 
+def config(args: argparse.Namespace) -> Fig3Config:
+    return Fig3Config(starts=args.starts, n_min=args.n_min, n_max=args.n_max, seed=args.seed, mode=args.mode,
+                      scenes=args.scenes, split=args.split, num_scenes=args.num_scenes,
+                      resolution=args.resolution, batch=args.batch, free_walks=args.free_walks)
+
+
+def check(args: argparse.Namespace) -> None:
+    config(args).validate()
+
+
 def main(args: argparse.Namespace, out_dir: Path) -> dict:
-    cfg = Fig3Config(starts=args.starts, n_min=args.n_min, n_max=args.n_max, seed=args.seed, mode=args.mode,
-                     scenes=args.scenes, split=args.split, num_scenes=args.num_scenes,
-                     resolution=args.resolution, batch=args.batch, free_walks=args.free_walks)
-    res = run_fig3(cfg)
+    res = run_fig3(config(args))
     write_json(out_dir / "fig3.json", res)
     figs = plot(res, out_dir)
     return {"files": [str(out_dir / "fig3.json")] + [str(f) for f in figs], "highlights": res["highlights"]}

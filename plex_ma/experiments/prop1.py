@@ -52,8 +52,9 @@ class Prop1Config:
     def validate(self) -> None:
         if not self.alphas or any(not (0 < a <= 1) for a in self.alphas):
             raise ValueError(f"alphas must lie in (0, 1], got {self.alphas}")
-        if self.n_max < 1 or self.walks < 2 or self.chunk < 1:
-            raise ValueError("n_max >= 1, walks >= 2 and chunk >= 1 required")
+        for name, least in (("n_max", 1), ("walks", 2), ("chunk", 1)):
+            if getattr(self, name) < least:
+                raise ValueError(f"{name} must be >= {least}, got {getattr(self, name)}")
 
 
 # ------------------------------------------------------------------------ exponents
@@ -237,9 +238,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk", type=int, default=d.chunk, help="walks simulated at once")
 
 
+def config(args: argparse.Namespace) -> Prop1Config:
+    return Prop1Config(alphas=list(args.alphas), n_max=args.n_max, walks=args.walks, seed=args.seed, chunk=args.chunk)
+
+
+def check(args: argparse.Namespace) -> None:
+    config(args).validate()
+
+
 def main(args: argparse.Namespace, out_dir: Path) -> dict:
-    cfg = Prop1Config(alphas=list(args.alphas), n_max=args.n_max, walks=args.walks, seed=args.seed, chunk=args.chunk)
-    res = run_prop1(cfg)
+    res = run_prop1(config(args))
     write_json(out_dir / "prop1.json", res)
     fig = plot(res, out_dir)
     return {"files": [str(out_dir / "prop1.json"), str(fig)], "summary": res["summary"]}

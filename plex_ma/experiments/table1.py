@@ -1,4 +1,4 @@
-"""Table 1, Fig. 4 and Fig. 5a/b (paper section 5): the four methods at an equal budget.
+"""Table 1, Fig. 4 and Fig. 5a/b (paper section 5): every method at one equal budget.
 
 One command trains every *arm* (a method with its options) for every seed with the
 public CLIs, evaluates each run greedily, and writes the table and the figures::
@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from plex_ma.cli import output_path
 from plex_ma.trainers.base import EpisodeStats
 
 from . import repo_root
@@ -80,7 +81,7 @@ METRICS = ("success", "spl", "reward", "distance_to_goal", "collisions")
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--arms", nargs="+", default=DEFAULT_ARMS, choices=list(ARMS),
-                   help="which arms to run (default: the four methods, the no-ELI ablation and the map control)")
+                   help="which arms to run (default: the two PLEX and two flat methods, the no-ELI ablation and the map control)")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="training seeds (>= 3 for the table)")
     p.add_argument("--budget", type=int, default=100_000, help="environment steps per run (equal for every arm)")
     p.add_argument("--preset", default="cpu", choices=["smoke", "cpu", "paper"], help="train preset")
@@ -89,7 +90,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int, default=1, help="runs trained at the same time")
     p.add_argument("--success-levels", type=float, nargs="+", default=[0.5, 0.8],
                    help="report the training steps each run needs to reach these successes (the paper's claim: 0.5)")
-    p.add_argument("--runs-dir", type=Path, default=None,
+    p.add_argument("--runs-dir", type=output_path(directory=True), default=None,
                    help="where runs and checkpoints go (default: runs/table1 at the repository root)")
     p.add_argument("--report-only", action="store_true", help="only rebuild the table and figures from the runs")
     p.add_argument("--extra", nargs=argparse.REMAINDER, default=[],
@@ -97,6 +98,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 # ---------------------------------------------------------------------------- running
+class RunFailed(RuntimeError):
+    """A training or evaluation child exited with an error (a stopped training resumes later)."""
+
+
+def _call(cmd: list[str], log_path: Path, mode: str) -> None:
+    """Run a CLI child with its output (and the command, first) in ``log_path``."""
+    with open(log_path, mode) as log:
+        log.write("$ " + " ".join(cmd[1:]) + "\n")
+        log.flush()
+        rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=repo_root()).returncode
+    if rc != 0:
+        raise RunFailed(f"{cmd[2]} exited with status {rc}; its log: {log_path}")
+
+
 def _run_one(arm: Arm, seed: int, args, run_dir: Path, keep: Path) -> dict:
     """Train (or resume) and evaluate one run; copy its small outputs to ``keep``."""
     py = sys.executable
@@ -108,18 +123,14 @@ def _run_one(arm: Arm, seed: int, args, run_dir: Path, keep: Path) -> dict:
         cmd = [py, "-m", "plex_ma.train", "--preset", args.preset, *arm.train_args, "--seed", str(seed),
                "--total-steps", str(args.budget), "--run-dir", str(run_dir), "--no-progress",
                "--keep-checkpoints", "1", *args.extra]
-        with open(keep / "train.log", "a") as log:
-            log.write("$ " + " ".join(cmd[1:]) + "\n")
-            log.flush()
-            subprocess.run(cmd, check=True, stdout=log, stderr=subprocess.STDOUT, cwd=repo_root())
+        _call(cmd, keep / "train.log", "a")
         evals = [("r2v", args.r2v_episodes, keep / "eval_test_r2v.json")] if args.r2v_episodes > 0 else []
         evals.append(("procgen", args.eval_episodes, done))
         for scenes, n, out in evals:
             cmd = [py, "-m", "plex_ma.evaluate", "--checkpoint", str(ckpt), "--split", "test",
                    "--scenes", scenes, "--episodes", str(n), "--num-envs", "16", "--torch-threads", "1",
                    "--json", str(out.with_suffix(".part"))]
-            with open(keep / f"eval_{scenes}.log", "w") as log:
-                subprocess.run(cmd, check=True, stdout=log, stderr=subprocess.STDOUT, cwd=repo_root())
+            _call(cmd, keep / f"eval_{scenes}.log", "w")
         with open(run_dir / "metrics.jsonl", "rb") as f, \
                 gzip.GzipFile(keep / "metrics.jsonl.gz", "wb", mtime=0) as g:
             shutil.copyfileobj(f, g)
@@ -129,7 +140,7 @@ def _run_one(arm: Arm, seed: int, args, run_dir: Path, keep: Path) -> dict:
 
 
 def run_all(args, out: Path) -> list[dict]:
-    runs_dir = args.runs_dir or (repo_root() / "runs" / "table1")
+    runs_dir = Path(args.runs_dir) if args.runs_dir else repo_root() / "runs" / "table1"
     # Seed-major order: if the budget of time runs out, whole seeds are complete.
     jobs = [(ARMS[a], s) for s in args.seeds for a in args.arms]
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
@@ -314,13 +325,20 @@ def plot_fig5b(table: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def main(args, out: Path) -> dict:
-    if args.budget <= 0 or args.eval_episodes <= 0 or args.r2v_episodes < 0 or args.jobs < 1:
-        raise SystemExit("table1: --budget, --eval-episodes and --jobs must be positive, --r2v-episodes >= 0")
+def check(args) -> None:
+    for flag, least in (("budget", 1), ("eval_episodes", 1), ("r2v_episodes", 0), ("jobs", 1)):
+        if getattr(args, flag) < least:
+            raise ValueError(f"--{flag.replace('_', '-')} must be >= {least}, got {getattr(args, flag)}")
     if not all(0 < v <= 1 for v in args.success_levels):
-        raise SystemExit(f"table1: --success-levels must be in (0, 1], got {args.success_levels}")
+        raise ValueError(f"--success-levels must be in (0, 1], got {args.success_levels}")
+
+
+def main(args, out: Path) -> dict:
     t0 = time.time()
-    runs = [] if args.report_only else run_all(args, out)
+    try:
+        runs = [] if args.report_only else run_all(args, out)
+    except RunFailed as e:
+        raise SystemExit(f"table1: {e}") from None
     table = collect(args, out)
     write_json(out / "table1.json", {
         "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
