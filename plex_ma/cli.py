@@ -1,12 +1,13 @@
 """What the command lines share: a user error is one line on stderr with exit status 2,
-and no traceback (``train``, ``evaluate``, ``record``, ``bench``, ``episodes``), and
-argparse types that name a bad value."""
+and no traceback (``train``, ``evaluate``, ``record``, ``bench``, ``episodes``, ``scenes``,
+``experiments``, ``pretrained``), and argparse types that name a bad value."""
 
 from __future__ import annotations
 
 import argparse
 import os
 import sys
+import tempfile
 from pathlib import Path
 from typing import NoReturn
 
@@ -67,6 +68,10 @@ def unwritable(path: str, directory: bool = False) -> str | None:
         return f"{path!r}: {str(up)!r} is not a directory"
     if not os.access(up, os.W_OK | os.X_OK) or (p.is_file() and not os.access(p, os.W_OK)):
         return f"{path!r}: not writable"
+    try:  # a real probe too: os.access says yes to root everywhere, even in /proc
+        tempfile.TemporaryFile(dir=up).close()
+    except OSError as e:
+        return f"{path!r}: cannot write in {str(up)!r} ({e.strerror})"
     return None
 
 

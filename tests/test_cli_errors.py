@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from plex_ma import bench, episodes, evaluate, pretrained, record, scenes, train
+from plex_ma.cli import unwritable
 from plex_ma.experiments.__main__ import main as experiments_main
 
 MISSING = "/nonexistent-plex-ma-scenes"
@@ -188,3 +190,15 @@ def test_pretrained_errors_are_one_line(capsys, argv, names):
         code = e.code
     assert code == 2
     assert_one_line_error(capsys.readouterr().err, *names)
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_output_in_an_unwritable_filesystem_is_one_line(capsys):
+    """/proc refuses new files even to root, whom os.access lets through: the probe must catch it."""
+    assert "cannot write in '/proc'" in unwritable("/proc/plex-ma-run", directory=True)
+    try:
+        code = train.main(["--preset", "smoke", "--run-dir", "/proc/plex-ma-run"])
+    except SystemExit as e:
+        code = e.code
+    assert code == 2
+    assert_one_line_error(capsys.readouterr().err, "--run-dir", "/proc/plex-ma-run", "cannot write")
