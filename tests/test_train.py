@@ -473,25 +473,23 @@ def test_phases_warmup_then_main(tmp_path):
 @pytest.mark.slow
 def test_plex_learns_to_reach_the_goal_from_the_reward_alone(tmp_path):
     """PLEX end to end with the cpu preset's recipe (no teacher: both agents learn by PPO on
-    the reward alone), its warm-up shortened, in an open room (100-step episodes, 8 worlds):
-    4k steps of executor warm-up under random sub-goals (40-step episodes, no success: the
-    random planner never stops), then planner and executor learn. By 20k steps (about two
-    minutes of two cores) at least 30% of the last 100 training episodes (sampled actions)
-    succeed and their reward is above 5 (measured: 0.60 and 9.9)."""
-    cfg = replace(
-        preset_defaults("cpu"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1, max_steps=100,
-        num_envs=8, rollout_steps=32, planner_warmup_steps=4_000, total_steps=20_000, progress=False,
-        checkpoint_interval=1000, record_interval=0, anneal_lr=False)  # constant rates: 20k steps is no schedule
+    the reward alone) in the procgen houses, shortened to 16 worlds and 32,000 steps (about
+    two minutes of two cores; the budget is shorter than the preset's warm-up, so none), then
+    evaluated greedily on the first 50 fixed val episodes. The untrained networks' priors
+    already reach success 0.60 there, but with reward 5.7 and 190 collisions an episode;
+    after training: success 0.80, reward 11.5, 28 collisions (measured with ``train --preset
+    cpu --planner-warmup-steps 0 --total-steps 32000 --num-envs 16``, and with ``--total-steps
+    1 --lr 1e-12 --planner-lr 1e-12`` for the untrained, then ``evaluate --split val
+    --episodes 50 --num-envs 16``)."""
+    cfg = replace(preset_defaults("cpu"), run_dir=str(tmp_path / "run"), num_envs=16, total_steps=32_000,
+                  planner_warmup_steps=0, progress=False, record_interval=0)
     t = make_trainer(validate(cfg))
     t.train()
     t.close()
-    lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    assert {d["phase"] for d in lines} == {PHASES["warmup"], PHASES["main"]}
-    episodes = [d for d in lines if "reward" in d]
-    assert episodes[0]["reward"] < 0 and episodes[0]["metrics/success"] == 0, episodes[0]
     assert t.updates["planner"] >= 10
-    last = episodes[-1]
-    assert last["metrics/success"] >= 0.3 and last["reward"] > 5.0, last
+    res = evaluate_main(["--checkpoint", str(tmp_path / "run" / "latest.pt"), "--split", "val", "--episodes", "50",
+                         "--num-envs", "16"])
+    assert res["reward"] > 9.0 and res["collisions"] < 60, {k: res[k] for k in ("success", "reward", "collisions")}
 
 
 def test_training_counts_episodes_ended_by_planner_stop(tmp_path):
