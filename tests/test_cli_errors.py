@@ -30,6 +30,14 @@ def assert_one_line_error(err: str, *names: str) -> None:
         assert name in lines[0], err
 
 
+def exit_status(main, argv: list[str]) -> int:
+    """What a CLI's ``main`` exits with: its return value, or the code of its SystemExit."""
+    try:
+        return main(argv)
+    except SystemExit as e:
+        return e.code
+
+
 @pytest.fixture
 def empty_dir(tmp_path):
     d = tmp_path / "no-plans"
@@ -113,11 +121,7 @@ def test_bad_scenes_in_every_cli(tmp_path, empty_dir, argv, names):
 ])
 def test_bad_values_are_one_line(tmp_path, capsys, main, argv, names):
     argv = [str(tmp_path / "out.rrd") if a == "OUT" else a for a in argv]
-    try:
-        code = main(argv)
-    except SystemExit as e:
-        code = e.code
-    assert code == 2
+    assert exit_status(main, argv) == 2
     assert_one_line_error(capsys.readouterr().err, *names)
     assert not list(tmp_path.iterdir())
 
@@ -138,11 +142,7 @@ def test_unwritable_outputs_are_one_line(tmp_path, capsys, main, argv, names):
     (tmp_path / "file").write_text("a file, not a directory")
     subs = {"FILE": str(tmp_path / "file"), "DIR": str(tmp_path)}
     argv = [a.replace("FILE", subs["FILE"]).replace("DIR", subs["DIR"]) for a in argv]
-    try:
-        code = main(argv)
-    except SystemExit as e:
-        code = e.code
-    assert code == 2
+    assert exit_status(main, argv) == 2
     assert_one_line_error(capsys.readouterr().err, *[subs.get(n, n) for n in names])
     assert [p.name for p in tmp_path.iterdir()] == ["file"]
 
@@ -169,11 +169,7 @@ def test_train_help_names_the_module(capsys):
 def test_experiment_errors_are_one_line_and_write_nothing(tmp_path, capsys, argv, names):
     (tmp_path / "file").write_text("a file, not a directory")
     argv = [a.replace("FILE", str(tmp_path / "file")) for a in argv] + ["--out", str(tmp_path / "out")]
-    try:
-        code = experiments_main(argv)
-    except SystemExit as e:
-        code = e.code
-    assert code == 2
+    assert exit_status(experiments_main, argv) == 2
     assert_one_line_error(capsys.readouterr().err, *names)
     assert [p.name for p in tmp_path.iterdir()] == ["file"]
 
@@ -184,11 +180,7 @@ def test_experiment_errors_are_one_line_and_write_nothing(tmp_path, capsys, argv
     (["export", "x.pt", "--name", "a", "--command", "c", "--notes", "[1]"], ["--notes", "JSON object"]),
 ])
 def test_pretrained_errors_are_one_line(capsys, argv, names):
-    try:
-        code = pretrained.main(argv)
-    except SystemExit as e:
-        code = e.code
-    assert code == 2
+    assert exit_status(pretrained.main, argv) == 2
     assert_one_line_error(capsys.readouterr().err, *names)
 
 
@@ -196,9 +188,5 @@ def test_pretrained_errors_are_one_line(capsys, argv, names):
 def test_output_in_an_unwritable_filesystem_is_one_line(capsys):
     """/proc refuses new files even to root, whom os.access lets through: the probe must catch it."""
     assert "cannot write in '/proc'" in unwritable("/proc/plex-ma-run", directory=True)
-    try:
-        code = train.main(["--preset", "smoke", "--run-dir", "/proc/plex-ma-run"])
-    except SystemExit as e:
-        code = e.code
-    assert code == 2
+    assert exit_status(train.main, ["--preset", "smoke", "--run-dir", "/proc/plex-ma-run"]) == 2
     assert_one_line_error(capsys.readouterr().err, "--run-dir", "/proc/plex-ma-run", "cannot write")
