@@ -46,12 +46,6 @@ class TrainConfig:
     """largest distance (m) of the random planner's sub-goals (at most rho_max)"""
     random_subgoal_angle: float = 3.14
     """largest |direction| (rad) of the random planner's sub-goals"""
-    planner_warmup_steps: int = 40_000
-    """PLEX only: environment steps during which random sub-goals stand in for the planner (not trained) while the executor learns"""
-    warmup_scenes: str | None = "open-room"
-    """PLEX only: scene source during the planner warm-up (e.g. open-room, where random sub-goals are reachable); None: --scenes"""
-    warmup_max_steps: int = 40
-    """PLEX only: agent actions per episode on --warmup-scenes (short episodes keep the agent away from walls, where snapped sub-goals are trivially close)"""
     preset: Preset = "cpu"
     """the recipe: cpu (these defaults for PLEX: best per CPU hour here), smoke (the cpu recipe in < 2 min), paper (the paper's settings)"""
     total_steps: int = 2_048_000
@@ -164,16 +158,15 @@ def from_dict(d: dict) -> TrainConfig:
 
 
 def smoke_recipe(method: str) -> dict:
-    """The recommended recipe shrunk to finish in well under two minutes on two cores (no
-    warm-up, so both agents learn; it still writes a checkpoint)."""
-    return dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, num_scenes=4, planner_warmup_steps=0,
+    """The recommended recipe shrunk to finish in well under two minutes on two cores (it
+    still writes a checkpoint)."""
+    return dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, num_scenes=4,
                 ppo_epochs=2, checkpoint_interval=5, keep_checkpoints=1)
 
 
 def cpu_recipe(method: str) -> dict:
-    """The recommended recipe, TrainConfig's defaults: reward-only PLEX, a 40k-step executor
-    warm-up under random sub-goals in an open room, then both agents by PPO on the reward
-    alone. The flat baselines share its images, worlds and rollouts and take 4 PPO epochs
+    """The recommended recipe, TrainConfig's defaults: reward-only PLEX, both agents by PPO
+    on the reward alone from the first step. The flat baselines share its images, worlds and rollouts and take 4 PPO epochs
     per update. Each method's learning rate is the best of its sweep (docs/results.md)."""
     if method.startswith("plex"):
         return {}
@@ -182,12 +175,12 @@ def cpu_recipe(method: str) -> dict:
 
 def paper_recipe(method: str) -> dict:
     """The paper's settings: 256 px images, N_EX = 10, N_PL = 128, 30M steps, a 512-unit
-    executor GRU at one constant learning rate, the env's own rewards, no warm-up and no
+    executor GRU at one constant learning rate, the env's own rewards, and no
     value-iteration module or priors."""
     env = {f.name: f.default for f in dataclasses.fields(PlexConfig) if f.name in TRAIN_ENV}
     return env | dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128, lr=2.5e-4,
-                      planner_lr=None, anneal_lr=False, ppo_epochs=4, executor_hidden=512, planner_warmup_steps=0,
-                      warmup_scenes=None, executor_stop_prior=None, executor_heading_prior=None, executor_no_reversal=False,
+                      planner_lr=None, anneal_lr=False, ppo_epochs=4, executor_hidden=512, executor_stop_prior=None,
+                      executor_heading_prior=None, executor_no_reversal=False,
                       planner_value_iteration=False, planner_fine_map=False, planner_step_gamma=None,
                       planner_subgoal_std=0.5, torch_threads=0)
 
@@ -241,8 +234,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
          "must be in (0, 2] metres")
     need(cfg.executor_heading_prior is None or 0 < cfg.executor_heading_prior <= 20, "executor_heading_prior",
          "must be in (0, 20] logits")
-    need(cfg.planner_warmup_steps >= 0, "planner_warmup_steps", "must be >= 0")
-    need(cfg.warmup_max_steps >= 1, "warmup_max_steps", "must be >= 1")
     need(0.5 < cfg.random_subgoal_distance <= cfg.env.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")
     need(cfg.device in ("auto", "cpu", "cuda") or cfg.device.startswith("cuda:"), "device",

@@ -45,7 +45,7 @@ def empty_dir(tmp_path):
     return d
 
 
-# smoke has no warm-up; cpu starts in the open-room warm-up, which must not hide bad main scenes
+# both presets refuse bad scenes before any work
 @pytest.mark.parametrize("preset", ["smoke", "cpu"])
 @pytest.mark.parametrize("scenes", ["missing", "empty"])
 def test_train_bad_scenes_leave_no_run_dir(tmp_path, empty_dir, scenes, preset):

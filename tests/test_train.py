@@ -16,7 +16,7 @@ from plex_ma.evaluate import main as evaluate_main
 from plex_ma.trainers.checkpoint import CheckpointError, atomic_save, find_resumable, load_checkpoint, save_checkpoint
 from plex_ma.trainers import make_trainer
 from plex_ma.trainers.base import saved_config
-from plex_ma.trainers.plex import PHASES, PlexTrainer
+from plex_ma.trainers.plex import PlexTrainer
 
 
 def tiny(tmp_path, **kw) -> TrainConfig:
@@ -183,8 +183,7 @@ def test_parallel_planner_learning_matches_sequential(tmp_path):
     from separate generators."""
     nets = {}
     for parallel in (True, False):
-        cfg = tiny(tmp_path / str(parallel), planner_warmup_steps=0, total_steps=128, n_pl=1,
-                   parallel_updates=parallel)
+        cfg = tiny(tmp_path / str(parallel), total_steps=128, n_pl=1, parallel_updates=parallel)
         t = make_trainer(cfg, log=False)
         assert (t.pool is not None) == parallel
         t.train()
@@ -197,7 +196,7 @@ def test_parallel_planner_learning_matches_sequential(tmp_path):
 
 def test_resume_restores_the_planner_sampler(tmp_path):
     """The planner's generator (its minibatch order) is checkpointed."""
-    cfg = tiny(tmp_path, planner_warmup_steps=0, n_pl=1)
+    cfg = tiny(tmp_path, n_pl=1)
     t = make_trainer(cfg)
     t.train()
     t.close()
@@ -345,11 +344,13 @@ def test_env_settings_are_train_flags_that_reach_the_env(tmp_path):
 def test_saved_config_with_retired_settings_loads():
     """A checkpoint's config from older code, with settings since retired (the teacher and the
     planner's imitation, the planner's own PPO settings, the executor's goal skip at the value
-    every network now has), loads without them; their flags no longer exist."""
+    every network now has, the executor's warm-up under random sub-goals), loads without them;
+    their flags no longer exist."""
     cfg = preset_defaults("cpu")
     retired = {"teacher": "map-los", "teacher_subgoal_steps": 260_000, "planner_imitation_steps": 724_000,
                "imitation_minibatches": 8, "planner_entropy_coef": None, "planner_target_kl": None,
-               "planner_minibatches": 2, "executor_goal_skip": True}
+               "planner_minibatches": 2, "executor_goal_skip": True, "planner_warmup_steps": 40_000,
+               "warmup_scenes": "open-room", "warmup_max_steps": 40}
     assert from_dict(dataclasses.asdict(cfg) | retired) == cfg
     assert saved_config({"config": dataclasses.asdict(cfg) | retired}) == cfg
     # a network these settings no longer build: one clear error that names the setting
@@ -360,7 +361,8 @@ def test_saved_config_with_retired_settings_loads():
     assert cfg.executor_no_reversal and not saved_config({"config": older}).executor_no_reversal
     assert not preset_defaults("paper").executor_no_reversal
     for flag in ("--teacher-subgoal-steps", "--planner-imitation-steps", "--planner-minibatches",
-                 "--planner-entropy-coef", "--planner-target-kl", "--executor-goal-skip"):
+                 "--planner-entropy-coef", "--planner-target-kl", "--executor-goal-skip",
+                 "--planner-warmup-steps", "--warmup-max-steps", "--warmup-scenes"):
         with pytest.raises(ValueError, match=f"unrecognized arguments: {flag}"):
             parse(["--preset", "smoke", flag, "100"])
 
@@ -417,72 +419,18 @@ def test_executor_alone_learns_to_reach_subgoals(tmp_path):
     assert np.mean(curve[-3:]) >= 0.6, curve[-10:]
 
 
-@pytest.mark.parametrize("fixed", [False, True])
-def test_warmup_on_other_scenes_then_training_scenes(tmp_path, fixed):
-    """--warmup-scenes: random sub-goals in open rooms during the warm-up (short episodes),
-    then the planner learns on the training scenes (their fixed episodes with --episodes-file;
-    the warm-up samples its own)."""
-    episodes = dict(split="val", episodes_file=str(default_episode_file("procgen", "val"))) if fixed else {}
-    cfg = tiny(tmp_path, warmup_scenes="open-room", planner_warmup_steps=64, warmup_max_steps=8, total_steps=160,
-               **episodes)
-    t = make_trainer(cfg)
-    assert t.env.config.scenes == "open-room" and t.env.config.max_steps == 8
-    assert t.env.worlds.fixed_episodes is None
-    t.train()
-    t.close()
-    assert t.env.config.scenes == "procgen" and t.env.config.max_steps == cfg.env.max_steps
-    assert all(w.scene_id.startswith("procgen") for w in t.env.worlds.sim.episodes)
-    assert (t.env.worlds.fixed_episodes is not None) == fixed
-    assert t.updates["planner"] >= 1  # the planner trained after the warm-up
-
-
-def test_phases_warmup_then_main(tmp_path):
-    """The phase schedule: the warm-up (random sub-goals, only the executor changes), then
-    the main phase (both learn); the logged phase follows it."""
-    from plex_ma.trainers.plex import Curriculum
-
-    cfg = tiny(tmp_path, planner_warmup_steps=64, total_steps=192, n_pl=1)
-    curriculum = Curriculum(cfg)
-    assert [curriculum.phase_at(s).name for s in (0, 63, 64, 10_000)] == ["warmup", "warmup", "main", "main"]
-    assert (curriculum.warmup.planner, curriculum.main.planner) == ("random", "learn")
-    t = make_trainer(cfg)
-    snaps = {}
-
-    def snap():
-        return {k: [p.detach().clone() for p in m.parameters()] for k, m in t.nets.items()}
-
-    def same(a, b):
-        return all(torch.equal(x, y) for x, y in zip(a, b))
-
-    while t.step < cfg.total_steps:
-        before, name = snap(), t.curriculum.phase_at(t.step).name
-        t.cfg = replace(cfg, total_steps=t.step + 1)  # one executor rollout per call
-        t.train()
-        after = snap()
-        snaps.setdefault(name, []).append((same(before["planner"], after["planner"]),
-                                           same(before["executor"], after["executor"])))
-    t.close()
-    assert set(snaps) == {"warmup", "main"}
-    assert all(pl and not ex for pl, ex in snaps["warmup"])  # only the executor learns
-    assert not all(pl for pl, ex in snaps["main"]) and not all(ex for pl, ex in snaps["main"])
-    lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    assert [d["phase"] for d in lines] == sorted(d["phase"] for d in lines)
-    assert {d["phase"] for d in lines} == {PHASES["warmup"], PHASES["main"]}
-
-
 @pytest.mark.slow
 def test_plex_learns_to_reach_the_goal_from_the_reward_alone(tmp_path):
     """PLEX end to end with the cpu preset's recipe (no teacher: both agents learn by PPO on
     the reward alone) in the procgen houses, shortened to 16 worlds and 32,000 steps (about
-    two minutes of two cores; the budget is shorter than the preset's warm-up, so none), then
-    evaluated greedily on the first 50 fixed val episodes. The untrained networks' priors
-    already reach success 0.60 there, but with reward 5.7 and 190 collisions an episode;
-    after training: success 0.80, reward 11.5, 28 collisions (measured with ``train --preset
-    cpu --planner-warmup-steps 0 --total-steps 32000 --num-envs 16``, and with ``--total-steps
-    1 --lr 1e-12 --planner-lr 1e-12`` for the untrained, then ``evaluate --split val
-    --episodes 50 --num-envs 16``)."""
+    two minutes of two cores), then evaluated greedily on the first 50 fixed val episodes.
+    The untrained networks' priors already reach success 0.60 there, but with reward 5.7 and
+    190 collisions an episode; after training: success 0.80, reward 11.5, 28 collisions
+    (measured with ``train --preset cpu --total-steps 32000 --num-envs 16``, and with
+    ``--total-steps 1 --lr 1e-12 --planner-lr 1e-12`` for the untrained, then ``evaluate
+    --split val --episodes 50 --num-envs 16``)."""
     cfg = replace(preset_defaults("cpu"), run_dir=str(tmp_path / "run"), num_envs=16, total_steps=32_000,
-                  planner_warmup_steps=0, progress=False, record_interval=0)
+                  progress=False, record_interval=0)
     t = make_trainer(validate(cfg))
     t.train()
     t.close()

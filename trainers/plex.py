@@ -22,10 +22,7 @@ its minibatches from its own generator, and both threads run the same number of 
 threads, so the networks are the same, bit for bit, as with the updates one after the other.
 
 Either agent can be a stand-in that is not trained (``--planner random|oracle``,
-``--executor oracle``: the shortest-path oracles use ground truth). A run has two phases
-(:class:`Curriculum`): the warm-up (``planner_warmup_steps``: the executor learns under
-random sub-goals, on ``warmup_scenes`` if set), then the main phase (the agents as
-``--planner`` and ``--executor`` say).
+``--executor oracle``: the shortest-path oracles use ground truth).
 
 Stop-gradient: the ELI reaches the planner through the environment as a plain array, and
 the planner detaches it again inside its forward pass; the planner's optimiser holds only
@@ -38,50 +35,20 @@ import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from plex_ma.config import TrainConfig
-from plex_ma.envs.rules import PLANNER, worlds_data
+from plex_ma.envs.rules import PLANNER
 from plex_ma.envs.vector import PlexVectorEnv
 from plex_ma.networks import Executor, Planner
 
 from . import distributed
-from .base import EpisodeStats, RunClock, Trainer, env_kwargs
+from .base import RunClock, Trainer, env_kwargs
 from .decisions import DecisionBuffer
 from .driver import Decision, PlexDriver, make_executor, make_planner
 from .ppo import RolloutBuffer, ppo_update
-
-# The number logged as the metric "phase"; 1 and 2 were the retired teacher's phases, left
-# unused so that the logs of older runs read the same.
-PHASES = {"warmup": 0, "main": 3}
-
-
-@dataclass(frozen=True)
-class Phase:
-    """A stretch of a PLEX run: which planner acts, and in which worlds."""
-
-    name: str  # a key of PHASES
-    planner: str  # the planner policy acting (make_planner's kind): random, learn or oracle
-    warm_env: bool  # on --warmup-scenes with --warmup-max-steps
-
-
-class Curriculum:
-    """The phases of a PLEX run: the warm-up for ``planner_warmup_steps`` environment steps
-    (random sub-goals stand in for the planner while the executor learns), then the main
-    phase (the agents as ``--planner`` / ``--executor`` say)."""
-
-    def __init__(self, cfg: TrainConfig):
-        self.warmup_steps = cfg.planner_warmup_steps
-        self.warmup = Phase("warmup", "random", bool(cfg.warmup_scenes))
-        self.main = Phase("main", cfg.planner, False)
-
-    def phase_at(self, step: int) -> Phase:
-        """The phase at an environment step (the total over all workers)."""
-        return self.warmup if step < self.warmup_steps else self.main
-
 
 class PlexTrainer(Trainer):
     """Independent PPO for the planner and the executor (see the module docstring)."""
@@ -100,7 +67,6 @@ class PlexTrainer(Trainer):
         self.executor: Executor = self.nets["executor"]
         self.np_rng = np.random.default_rng(cfg.seed + self.dist.seed_offset)
         self.executor_success: deque = deque(maxlen=200)  # reached / turns, over recent turns
-        self.curriculum = Curriculum(cfg)
         self._make_driver()
 
     def state(self) -> dict:
@@ -118,20 +84,14 @@ class PlexTrainer(Trainer):
         super().close()
 
     def _make_driver(self) -> None:
-        """The training worlds (on ``--warmup-scenes`` in a warm-up that has them) and the
-        driver with this phase's planner and executor policies."""
+        """The training worlds and the driver with the planner and executor policies."""
         cfg = self.cfg
-        self.phase = self.curriculum.phase_at(self.step)
         kw = env_kwargs(cfg)
-        if self.phase.warm_env:
-            worlds_data(cfg.env)  # the main phase's scenes and episodes load now: a bad one fails before the warm-up
-            kw |= {"scenes": cfg.warmup_scenes, "num_scenes": None, "episodes_file": None,
-                   "max_steps": cfg.warmup_max_steps}
         self.env = PlexVectorEnv(cfg.num_envs, seed=cfg.seed + 1000 * self.updates["executor"] + self.dist.seed_offset,
                                  **kw)
         self.driver = PlexDriver(
             self.env,
-            make_planner(self.phase.planner, self.env, self.planner, rng=self.np_rng,
+            make_planner(cfg.planner, self.env, self.planner, rng=self.np_rng,
                          max_distance=cfg.random_subgoal_distance, max_angle=cfg.random_subgoal_angle),
             make_executor(cfg.executor, self.env, self.executor))
         self.driver.reset(seed=cfg.seed + self.step + self.dist.seed_offset)
@@ -250,15 +210,9 @@ class PlexTrainer(Trainer):
     def train(self) -> dict:
         clock = self._loop_start()
         while self.step < self.cfg.total_steps:
-            if self.phase != self.curriculum.phase_at(self.step):
-                # A new phase: new worlds and this phase's planner. Episodes in flight are
-                # dropped (their planner transitions would mix two phases' policies).
-                self.env.close()
-                self.stats = EpisodeStats()
-                self._make_driver()
             buf = self._rollout(clock)
             t0 = time.perf_counter()
-            metrics = {"phase": PHASES[self.phase.name]}
+            metrics = {}
             # the planner's update: on the second thread, if there is one, from here on (the
             # all_true check is a collective, so it stays on this thread)
             args = (self.driver.planner.learns and self._planner_ready(), torch.get_num_threads())

@@ -52,9 +52,9 @@ from plex_ma.trainers.base import EpisodeStats
 from . import repo_root
 from .common import machine, mean_sd_se, provenance, pyplot, save_figure, write_json
 
-# The logged "phase" from which on the learned planner sets the sub-goals: the main phase
-# (trainers.plex.PHASES) and, in the logs of older runs, already phase 2 (the retired
-# imitation of a teacher planner).
+# Older PLEX logs carry a "phase": 0 the retired warm-up under random sub-goals, 1 and 2 the
+# retired teacher's (2: the learned planner imitating it), 3 both agents learning. From phase
+# 2 on the learned planner sets the sub-goals; current logs have no phase (it always does).
 LEARNED_PLANNER_PHASE = 2
 
 
@@ -160,9 +160,9 @@ def _load_eval(path: Path) -> dict | None:
 
 def _load_curve(path: Path) -> dict | None:
     """A run's training curve: reward and success of its last 100 training episodes (sampled
-    actions) at each logged step, NaN until 100 have ended. For PLEX, only the phases in
-    which the learned planner acts count (before them random sub-goals, or in older runs a
-    teacher planner's), and the window starts empty when they begin."""
+    actions) at each logged step, NaN until 100 have ended. In an older PLEX log only the
+    phases in which the learned planner acts count (before them random sub-goals or a teacher
+    planner's), and the window starts empty when they begin."""
     if not path.is_file():
         return None
     with gzip.open(path, "rt") as f:
