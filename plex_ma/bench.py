@@ -165,8 +165,6 @@ def bench_order(first: tuple[str, ...] = ("plex_ma", "torch", "numba"), rounds: 
 def bench_record(preset: str = "cpu", updates: int = 20, record_interval: int = 10, default_interval: int | None = None,
                  seed: int = 0, method: str = "plex-gru") -> dict:
     """Training time with and without recordings (see the module docstring)."""
-
-
     if default_interval is None:
         default_interval = TrainConfig().record_interval or 50
     base = preset_defaults(preset, method)

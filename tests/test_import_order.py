@@ -39,20 +39,17 @@ digest = hashlib.sha256(b"".join(np.ascontiguousarray(v).tobytes() for v in obs.
 """
 
 
-def test_import_order_keeps_the_speed(monkeypatch):
-    """``python -m plex_ma.bench order``: torch imported first against plex_ma first, in
-    fresh processes, the envs alone and with a CNN's forward pass. The factor is generous
-    (this runs beside other tests on 2 cores); a kernel layer that spins, as GNU OpenMP did,
-    or a wait policy that depends on the order (torch beside busy processes) costs several
-    times that."""
+def test_import_order_keeps_the_threading_layer_and_wait_policy(monkeypatch):
+    """``python -m plex_ma.bench order``'s children, torch imported first against plex_ma
+    first, in fresh processes: both run the kernels on the workqueue layer with torch's
+    OpenMP wait policy untouched, and give the same observations. These are the causes of
+    the slowdowns the benchmark measures (GNU OpenMP spinning beside torch, a wait policy that
+    depends on the order); the speed itself is the benchmark's (docs/performance.md)."""
     monkeypatch.delenv("OMP_WAIT_POLICY")  # as in a fresh shell
-    out = bench_order(("plex_ma", "torch"), rounds=1, steps=150, num_envs=8, resolution=64, blocks=3)
+    out = bench_order(("plex_ma", "torch"), rounds=1, steps=20, num_envs=2, resolution=64, blocks=1)
     assert out["threading_layer"] == {"plex_ma": ["workqueue"], "torch": ["workqueue"]}
     assert out["wait_policy"] == {"plex_ma": ["None"], "torch": ["None"]}
     assert out["identical"]
-    for measure in ("single", "vector", "torch_env"):
-        best = max(out["ratio"]["torch"][measure], out["ratio"]["torch"][measure + "_cpu"])
-        assert best > 1 / 3, (measure, out["steps_per_second"])
 
 
 def test_a_chosen_layer_is_kept_and_gives_the_same_results():
