@@ -60,8 +60,9 @@ import plex_ma.viz as vr
 from plex_ma import bench_envs
 from plex_ma.bench_envs import bench_env, bench_geodesic, bench_gymvec, bench_sim, machine
 from plex_ma.cli import Parser, fail, integer, probability
-from plex_ma.config import DEVICE_HELP, ENV_FIELDS, TrainConfig, preset_defaults, replace, setting, validate
+from plex_ma.config import CNN_MIN_RESOLUTION, DEVICE_HELP, ENV_FIELDS, TrainConfig, preset_defaults, replace, setting, validate
 from plex_ma.envs.sim import EpisodeFileError, SceneError
+from plex_ma.envs.sim.core import MAX_RESOLUTION, MIN_RESOLUTION
 from plex_ma.envs.vector import PointNavVectorEnv
 from plex_ma.flops import matmul_gflops, model_flops_per_step
 from plex_ma.trainers.device import describe
@@ -351,9 +352,9 @@ def main(argv: list[str] | None = None) -> None:
 
     positive, at_least_0 = integer(1), integer(0)
 
-    def common(sp, steps: int, steps_help: str, min_resolution: int = 16) -> None:
+    def common(sp, steps: int, steps_help: str) -> None:
         sp.add_argument("--num-envs", type=positive, default=64, help="worlds stepped per call")
-        sp.add_argument("--resolution", type=integer(min_resolution, 1024), default=128,
+        sp.add_argument("--resolution", type=integer(MIN_RESOLUTION, MAX_RESOLUTION), default=128,
                         help="square image size in pixels")
         sp.add_argument("--steps", type=positive, default=steps, help=steps_help)
         sp.add_argument("--seed", type=at_least_0, default=0)
@@ -363,7 +364,7 @@ def main(argv: list[str] | None = None) -> None:
         sp.add_argument("--json", action="store_true", help="print one JSON object")
 
     ps = sub.add_parser("sim", help="raw batched simulator throughput")
-    common(ps, 300, "batched steps to time", min_resolution=8)
+    common(ps, 300, "batched steps to time")
     pe = sub.add_parser("env", help="AEC env turns/s, vector env steps/s and their ratio to the raw simulator")
     common(pe, 200, "vector env calls to time (the raw simulator gets as many)")
     pe.add_argument("--rounds", type=positive, default=10, help="alternate the vector env and the raw simulator this "
@@ -393,8 +394,8 @@ def main(argv: list[str] | None = None) -> None:
     po.add_argument("--rounds", type=positive, default=3, help="children per module, in rotating order")
     po.add_argument("--steps", type=positive, default=300, help="single-env steps per timed block")
     po.add_argument("--num-envs", type=positive, default=16, help="worlds of the vector env")
-    po.add_argument("--resolution", type=integer(36, 1024), default=64,
-                    help="square image size in pixels (at least 36, for the CNN)")
+    po.add_argument("--resolution", type=integer(CNN_MIN_RESOLUTION, MAX_RESOLUTION), default=64,
+                    help=f"square image size in pixels (at least {CNN_MIN_RESOLUTION}, for the CNN)")
     po.add_argument("--blocks", type=positive, default=3, help="timed blocks per child (the best counts)")
     po.add_argument("--no-torch-env", action="store_true", help="leave out the env + CNN loop")
     po.add_argument("--json", action="store_true", help="print one JSON object")
@@ -412,7 +413,8 @@ def main(argv: list[str] | None = None) -> None:
     pt.add_argument("--method", default="plex-gru", help="training method")
     pt.add_argument("--steps", type=positive, default=8192, help="environment steps to train for")
     pt.add_argument("--num-envs", type=positive, default=None, help="worlds (default: the preset's)")
-    pt.add_argument("--resolution", type=integer(16, 1024), default=None, help="image size (default: the preset's)")
+    pt.add_argument("--resolution", type=integer(CNN_MIN_RESOLUTION, MAX_RESOLUTION), default=None,
+                    help="image size (default: the preset's)")
     pt.add_argument("--seed", type=at_least_0, default=0)
     pt.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a TrainConfig field, e.g. --set num_minibatches=4 (repeatable)")

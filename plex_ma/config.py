@@ -24,6 +24,8 @@ from tyro._errors import on_parse_error  # tyro's documented hook: a bad flag as
 from plex_ma.envs.rules import PlexConfig, make_config
 
 # Where the trainer's env defaults differ from the env's own (the env's are the paper's, docs/spec.md).
+# The smallest image the executor's CNN takes (convolutions 8/4, 4/2, 3/1; tests check it).
+CNN_MIN_RESOLUTION = 36
 TRAIN_ENV = {"resolution": 48, "n_ex": 30, "subgoal_radius": 0.2, "executor_stop_penalty": -0.5,
              "executor_collision_reward": -0.15}
 Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt", "ppo-gru-map"]
@@ -208,7 +210,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.method in get_args(Method), "method", "unknown method")
     need(cfg.total_steps > 0, "total_steps", "must be positive")
     need(cfg.num_envs >= 1, "num_envs", "must be >= 1")
-    need(cfg.env.resolution >= 40, "resolution", "must be >= 40 to train: the executor's CNN needs 40 px")
+    need(cfg.env.resolution >= CNN_MIN_RESOLUTION, "resolution",
+         f"must be >= {CNN_MIN_RESOLUTION} to train: the executor's CNN needs {CNN_MIN_RESOLUTION} px")
     need(cfg.executor_hidden >= 8, "executor_hidden", "must be >= 8")
     need(cfg.lr > 0, "lr", "must be positive")
     need(cfg.planner_lr is None or cfg.planner_lr > 0, "planner_lr", "must be positive")

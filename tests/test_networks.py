@@ -305,3 +305,14 @@ def test_executor_heading_prior_turns_towards_the_subgoal():
     p = torch.softmax(ex(obs, ex.initial_state(5), torch.ones(5, dtype=torch.bool))[0], -1)
     assert p[:, 1:].argmax(-1)[:4].tolist() == [0, 1, 2, 1]  # forward, left, right; behind: left (sin 3 > 0)
     assert p[0, 1] > 0.85 and p[1, 2] > 0.85 and p[2, 3] > 0.85 and p[4, 0] > 0.85
+
+
+def test_cnn_min_resolution_is_the_smallest_image_the_executor_takes():
+    """config.CNN_MIN_RESOLUTION, the bound that train and bench check, is exactly the
+    executor encoder's smallest input."""
+    from plex_ma.config import CNN_MIN_RESOLUTION
+    from plex_ma.networks.executor import RGBDEncoder
+
+    RGBDEncoder(CNN_MIN_RESOLUTION, 8)
+    with pytest.raises(RuntimeError):
+        RGBDEncoder(CNN_MIN_RESOLUTION - 1, 8)

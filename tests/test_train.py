@@ -325,7 +325,7 @@ def test_env_settings_are_train_flags_that_reach_the_env(tmp_path):
     assert (cfg.env.slack_reward, cfg.env.pose_noise, cfg.env.eli, cfg.env.n_ex) == (-0.02, (0.05, 0.01), False, 7)
     with pytest.raises(ValueError, match="success_distance=9"):
         parse(["--preset", "smoke", "--success-distance", "9"])
-    with pytest.raises(ValueError, match="resolution.*40"):  # the env allows 16 px, the executor's CNN needs 40
+    with pytest.raises(ValueError, match="resolution.*36"):  # the env allows 8 px, the executor's CNN needs 36
         parse(["--preset", "smoke", "--resolution", "32"])
     for method, env_cls in (("plex-gru", "PlexConfig"), ("ppo-gru", "NavConfig")):
         t = make_trainer(replace(cfg, method=method, progress=False), log=False)

@@ -7,7 +7,7 @@ public CLIs, evaluates each run greedily, and writes the table and the figures::
 
 * Training: ``python -m plex_ma.train --preset PRESET --method M --seed S --total-steps
   BUDGET --run-dir RUNS/ARM-sS``. Every arm gets the same budget of environment steps
-  (executor actions); for PLEX arms this includes the preset's planner warm-up.
+  (executor actions).
 * Evaluation: ``python -m plex_ma.evaluate`` on the first ``--eval-episodes`` procgen test
   episodes and the first ``--r2v-episodes`` real-plan (r2v) test episodes.
 * Resuming: a run whose evaluation JSON exists is skipped; an interrupted training resumes

@@ -101,8 +101,8 @@ class Planner(MapEncoder):
     (:func:`planner_goal_features`) also enter the FC layer, so that map and goal interact,
     and each head is an MLP (``head_hidden`` units) over (trunk, goal features). With linear
     heads on (distance, cos, sin), as the text reads literally, the sub-goal direction cannot
-    follow the goal's, and a planner trained over the oracle executor reached success 0.00
-    where these heads reached 0.83 (docs/results.md).
+    follow the goal's: a planner trained with them over the oracle executor never reached the
+    goal.
 
     The heads answer relative to the goal and start goal-directed:
     - sub-goal mean = (min(goal distance, ``prior_distance``), goal direction) + the head's
@@ -111,8 +111,8 @@ class Planner(MapEncoder):
       goal, ``prior_distance`` (1.5 m) away at most, directions wrap round the goal's
       direction rather than round +-pi, and near the goal the sub-goal is the goal up to an
       offset that shrinks to nothing (with unscaled offsets, trained planners set sub-goals
-      0.1-0.17 m away when the goal was 0.2-0.3 m away, which an executor treats as reached,
-      and timed out there: docs/results.md);
+      within the executor's radius when the goal was just outside the success distance, and
+      timed out there);
     - stop logits = the head's output + a linear skip from the goal features, started at
       ``STOP_PRIOR_SLOPE`` x (``stop_distance`` - ``STOP_PRIOR_MARGIN`` - distance): with the
       success distance 0.2 m, p(stop) is 0.73 at 0.19 m, 0.27 at 0.2 m and below 2% beyond
