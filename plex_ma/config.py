@@ -23,9 +23,9 @@ from tyro._errors import on_parse_error  # tyro's documented hook: a bad flag as
 
 from plex_ma.envs.rules import PlexConfig, make_config
 
-# Where the trainer's env defaults differ from the env's own (the env's are the paper's, docs/spec.md).
 # The smallest image the executor's CNN takes (convolutions 8/4, 4/2, 3/1; tests check it).
 CNN_MIN_RESOLUTION = 36
+# Where the trainer's env defaults differ from the env's own (the env's are the paper's, docs/spec.md).
 TRAIN_ENV = {"resolution": 48, "n_ex": 30, "subgoal_radius": 0.2, "executor_stop_penalty": -0.5,
              "executor_collision_reward": -0.15}
 Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt", "ppo-gru-map"]
