@@ -33,7 +33,7 @@ class Experiment:
 
     def load(self) -> ModuleType:
         mod = importlib.import_module(self.module)
-        for fn in ("add_arguments", "main"):
+        for fn in ("add_arguments", "check", "main"):
             if not callable(getattr(mod, fn, None)):
                 raise TypeError(f"experiment {self.name!r}: module {self.module} lacks a {fn}() function")
         return mod

@@ -10,19 +10,20 @@ import json
 import sys
 import time
 from pathlib import Path
+from types import ModuleType
 
 from plex_ma.cli import Parser, output_path
 
 from . import REGISTRY, Experiment, default_out_dir
 
 
-def experiment_parser(exp: Experiment) -> Parser:
-    """The command line of one experiment (only its module is imported); its errors are one line."""
+def experiment_parser(exp: Experiment, mod: ModuleType) -> Parser:
+    """The command line of experiment ``exp`` (its module ``mod``); its errors are one line."""
     p = Parser(prog=f"python -m plex_ma.experiments {exp.name}", description=exp.help)
     p.add_argument("--out", type=output_path(directory=True), default=None,
                    help=f"output directory (default: results/{exp.name}/ at the repository root)")
     p.add_argument("--seed", type=int, default=0, help="master seed; the results are deterministic in it")
-    exp.load().add_arguments(p)
+    mod.add_arguments(p)
     return p
 
 
@@ -44,16 +45,17 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     exp = REGISTRY[name]
-    parser = experiment_parser(exp)
+    mod = exp.load()  # only this experiment's module is imported
+    parser = experiment_parser(exp, mod)
     args = parser.parse_args(rest)
     try:
-        exp.load().check(args)
+        mod.check(args)
     except ValueError as e:
         parser.error(str(e))
     out = (Path(args.out) if args.out is not None else default_out_dir(name)).resolve()
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    summary = exp.load().main(args, out)
+    summary = mod.main(args, out)
     dt = time.perf_counter() - t0
     print(json.dumps({"experiment": name, "out": str(out), "seconds": round(dt, 1), **(summary or {})}, indent=1))
     return 0
