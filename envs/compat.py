@@ -16,7 +16,7 @@ one small wrapper of ours for the action mask:
 | Observation (both agents) | `Dict(observation=Box(float32, (L,)), action_mask=Box(0, 1, (K,), int8))` |
 | Action (both agents) | `Discrete(K)`, `K = 1 + len(subgoal_distances) * subgoal_directions` (33 by default) |
 
-**observation** (float32, the same length L for both agents; 4,100 by default): a one-hot
+**observation** (float32, the same length L for both agents; 6,148 by default): a one-hot
 agent id (`[1, 0]` planner, `[0, 1]` executor), then the agent's own features, then zero
 padding up to L:
 
@@ -55,7 +55,7 @@ From the inside out:
 2. ``supersuit.observation_lambda_v0``: each agent's Dict observation to its flat vector
    with the one-hot id in front (``agent_indicator_v0`` is not used: it appends the id at
    the end, scaled to the space's largest bound, here the 100 m goal distance).
-3. ``supersuit.pad_observations_v0``: zero-pads the planner's vector to the executor's length.
+3. ``supersuit.pad_observations_v0``: zero-pads the shorter vector (the executor's, by default) to the longer one's length.
 4. ``supersuit.action_lambda_v1``: the Discrete choices to the native Dict actions
    (planner ``Discrete(K)``, executor ``Discrete(4)``).
 5. ``supersuit.pad_action_space_v0``: both to ``Discrete(K)``. (On its own it would

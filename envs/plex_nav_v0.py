@@ -97,9 +97,9 @@ unchanged (`pettingzoo.test.render_test` passes headless).
 | `rho_max` | 4.0 | largest sub-goal distance (m) |
 | `eli` | True | False: the ablation; the planner always sees zeros |
 | `scenes` | "procgen" | scene source: "procgen", "r2v", "open-room", a mix "A+B" (e.g. "procgen+r2v"), or a directory of floor plans |
-| `split` | "train" | "train", "val" or "test" (val/test use the fixed episode files) |
+| `split` | "train" | "train", "val" or "test" (procgen val/test cycle through the shipped episode files; other sources sample) |
 | `num_scenes` | None | scenes in the split (None: the source's default; procgen 72 train / 16 val / 16 test) |
-| `episodes_file` | None | a fixed episode file to cycle through (None: sampled for train, the split's shipped file for val/test) |
+| `episodes_file` | None | a fixed episode file to cycle through (None: procgen val/test use the split's shipped file, everything else is sampled) |
 | `pose_noise` | (0.0, 0.0) | GPS+compass Gaussian noise std (m, rad) |
 | `slack_reward`, `collision_reward`, `success_reward`, `subgoal_reward` | -0.01, -0.01, 10, 1 | reward weights |
 | `success_distance`, `subgoal_radius` | 0.2, 0.5 | metres |

@@ -1,4 +1,4 @@
-"""Benchmarks: ``python -m plex_ma.bench {sim,env,gymvec,geodesic,train,record,adam} [options] [--json]``.
+"""Benchmarks: ``python -m plex_ma.bench {sim,env,gymvec,geodesic,train,record,adam,order} [options] [--json]``.
 
 ``train`` times a short training (``--preset``, ``--method``, ``--steps``) end to end and
 reports steps/s, the shares of wall time in simulation, inference and the update, the

@@ -159,20 +159,21 @@ def from_dict(d: dict) -> TrainConfig:
     return TrainConfig(**{k: v for k, v in d.items() if k in known}, env=make_config(PlexConfig, env))
 
 
-def smoke_recipe(method: str) -> dict:
-    """The recommended recipe shrunk to finish in well under two minutes on two cores (it
-    still writes a checkpoint)."""
-    return dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32, num_scenes=4,
-                ppo_epochs=2, checkpoint_interval=5, keep_checkpoints=1)
-
-
 def cpu_recipe(method: str) -> dict:
     """The recommended recipe, TrainConfig's defaults: reward-only PLEX, both agents by PPO
-    on the reward alone from the first step. The flat baselines share its images, worlds and rollouts and take 4 PPO epochs
-    per update. Each method's learning rate is the best of its sweep (docs/results.md)."""
+    on the reward alone from the first step. The flat baselines share its images, worlds and
+    rollouts and take 4 PPO epochs per update. Each method's learning rate is the best of its
+    sweep (docs/results.md)."""
     if method.startswith("plex"):
         return {}
     return dict(ppo_epochs=4) | (dict(lr=3e-4) if method == "ppo-smt" else {})
+
+
+def smoke_recipe(method: str) -> dict:
+    """The cpu recipe shrunk to finish in well under two minutes on two cores (it still
+    writes a checkpoint)."""
+    return cpu_recipe(method) | dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32,
+                                     num_scenes=4, ppo_epochs=2, checkpoint_interval=5, keep_checkpoints=1)
 
 
 def paper_recipe(method: str) -> dict:

@@ -58,7 +58,7 @@ def test_train_bad_scenes_leave_no_run_dir(tmp_path, empty_dir, scenes, preset):
 
 
 def test_train_episodes_of_other_scenes_is_one_line(tmp_path):
-    """The val split's episode file for training on the train split, with the cpu preset's warm-up."""
+    """The val split's episode file for training on the train split, with the cpu preset."""
     from plex_ma.envs.sim.episodes import default_episode_file
     path = str(default_episode_file("procgen", "val"))
     out = run("plex_ma.train", "--preset", "cpu", "--total-steps", "64", "--episodes-file", path,

@@ -48,7 +48,7 @@ def test_single_process_needs_no_group():
         assert not ctx.active and ctx.is_main and ctx.seed_offset == 0 and not dist.is_initialized()
     finally:
         os.environ.update(saved)
-    assert distributed.all_true(True) and not distributed.any_true(False) and distributed.mean(2.5) == 2.5
+    assert distributed.all_true(True) and not distributed.any_true(False)
     assert list(distributed.common_length([1, 2])) == [1, 2]
 
 
@@ -107,7 +107,7 @@ def _worker(rank: int, port: int, out_dir: str) -> None:
         buf.data["advantages"] = torch.randn(1, m, generator=g)
         buf.data["returns"] = torch.randn(1, m, generator=g)
         opt = torch.optim.Adam(policy.parameters(), lr=1e-2)
-        stats = ppo_update(policy, buf, opt, PPOConfig(update_epochs=2, num_minibatches=4, target_kl=10.0), g)
+        stats = ppo_update(policy, buf, opt, PPOConfig(update_epochs=2, num_minibatches=4), g)
         torch.save({"local": local, "averaged": averaged, "params": [p.detach().clone() for p in policy.parameters()],
                     "stats": stats}, os.path.join(out_dir, f"rank{rank}.pt"))
     finally:

@@ -184,14 +184,6 @@ def any_true(flag: bool) -> bool:
     return bool(_all_reduce(torch.tensor([int(bool(flag))]), dist.ReduceOp.MAX, "an agreement all-reduce").item())
 
 
-def mean(x: float) -> float:
-    """The mean of ``x`` over the workers."""
-    if not _ctx.active:
-        return float(x)
-    return _all_reduce(torch.tensor([float(x)], dtype=torch.float64), dist.ReduceOp.SUM,
-                       "a metric all-reduce").item() / _ctx.world_size
-
-
 def common_length(items: Iterable[T]) -> Iterator[T | None]:
     """The items, padded with None up to the longest count on any worker, so every worker
     takes part in as many gradient all-reduces (a worker with a smaller planner batch may

@@ -44,7 +44,6 @@ class PPOConfig:
     update_epochs: int = 4
     num_minibatches: int = 2
     norm_adv: bool = True
-    target_kl: float | None = None  # stop the epochs early once approx_kl exceeds this
 
 
 def compute_gae(rewards, values, dones, truncated, bootstrap_values, gamma, lam: float):
@@ -272,7 +271,6 @@ def ppo_update(policy: nn.Module, batch: RolloutBuffer | Transitions, optimizer:
     hook = _dist.average_gradients if grad_hook is None else grad_hook
     sums: dict[str, float] = {}
     n = 0
-    kl = 0.0
     for _ in range(cfg.update_epochs):
         # distributed: every worker steps as often as the one with the most minibatches (None: none left here)
         for mb in _dist.common_length(batch.minibatches(cfg.num_minibatches, generator)):
@@ -287,12 +285,9 @@ def ppo_update(policy: nn.Module, batch: RolloutBuffer | Transitions, optimizer:
             if stats is None:
                 continue
             stats["grad_norm"] = grad_norm
-            kl = stats["approx_kl"]
             for k, v in stats.items():
                 sums[k] = sums.get(k, 0.0) + v
             n += 1
-        if cfg.target_kl is not None and _dist.mean(kl) > cfg.target_kl:  # all workers stop together
-            break
     out = {k: v / max(n, 1) for k, v in sums.items()}
     out["explained_variance"] = explained_variance(batch.values, batch.returns)
     return out

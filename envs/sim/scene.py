@@ -1,7 +1,7 @@
 """Scenes: vector geometry shared by every scene source, and its rasterised grid.
 
 A :class:`Scene` is what a scene source produces (the procedural generator in
-:mod:`.procgen`, real floor plans in a later loader): wall segments with a thickness,
+:mod:`.procgen`, real floor plans in :mod:`.r2v`): wall segments with a thickness,
 door segments that cut openings into walls, and axis-aligned furniture boxes, all in
 metres on a flat floor. Everything the simulator needs is derived from it once by
 :func:`rasterize`, which returns a :class:`SceneGrid`:

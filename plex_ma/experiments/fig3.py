@@ -1,6 +1,6 @@
 """Fig. 3 of the paper (section 4.4): how far does a random policy get in N actions?
 
-Setup (paper 4.4, docs/spec.md section 7): ``starts`` (500) start poses in the training scenes
+Setup (paper 4.4, docs/spec.md section 8): ``starts`` (500) start poses in the training scenes
 (procedural ``train`` split by default). Start ``k`` lies in scene ``k mod #scenes``, so
 recurring scenes get different start points; each start is the start position and the
 uniform random heading of an episode drawn by Habitat's rules (``sample_episode``). The
