@@ -55,7 +55,7 @@ class NavConfig:
     scenes: str = "procgen"  # scene source: procgen, r2v, open-room, procgen+r2v, or a directory of floor plans
     split: str = "train"  # scene split: train, val or test
     num_scenes: int | None = None  # scenes in the split (None: the source's default, 72 for procgen train)
-    episodes_file: str | None = None  # fixed episodes to cycle through (None: sampled for train, the split's file for val and test)
+    episodes_file: str | None = None  # fixed episodes to cycle through (None: the shipped file of procgen val/test, else sampled)
     pose_noise: tuple[float, float] = (0.0, 0.0)  # GPS+compass noise std: metres, radians
     slack_reward: float = -0.01  # reward added on every agent action
     collision_reward: float = -0.01  # reward added when a move is blocked

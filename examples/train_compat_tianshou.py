@@ -44,6 +44,7 @@ import time
 import numpy as np
 
 from plex_ma.envs import plex_nav_v0
+from plex_ma.envs.spaces import EGO_CHANNELS, EGO_SIZE
 import torch
 from torch import nn
 
@@ -59,7 +60,7 @@ except ImportError as e:  # pragma: no cover - the message is the point
     raise SystemExit(f"this example needs Tianshou 2.x: pip install tianshou ({e})") from None
 
 AGENTS = ("planner", "executor")
-GOAL_DISTANCE_INDEX = 2 + 2 * 32 * 32  # in the planner's compat observation: one-hot id, ego map, goal
+GOAL_DISTANCE_INDEX = 2 + EGO_CHANNELS * EGO_SIZE * EGO_SIZE  # in the planner's compat observation: one-hot id, ego map, goal
 
 
 # ---------------------------------------------------------------- reward credit
@@ -138,8 +139,8 @@ class Encoder(nn.Module):
 
     def __init__(self, agent: str, image_size: int = 32):
         super().__init__()
-        self.channels = 2 if agent == "planner" else 4
-        self.size = 32 if agent == "planner" else image_size
+        self.channels = EGO_CHANNELS if agent == "planner" else 4
+        self.size = EGO_SIZE if agent == "planner" else image_size
         self.vec_at = 2 + self.channels * self.size * self.size
         self.conv = nn.Sequential(nn.Conv2d(self.channels, 16, 4, stride=2), nn.ReLU(),
                                   nn.Conv2d(16, 32, 3, stride=2), nn.ReLU(), nn.Flatten())

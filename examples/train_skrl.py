@@ -14,7 +14,7 @@ in which both agents act every step and only the acting agent's action is applie
 What the recipe needs beyond the wrapper:
 
 * **Action masking.** skrl flattens each Dict observation in key order:
-  ``action_mask`` (33 values) first, then ``observation`` (4,100). The executor may use
+  ``action_mask`` (33 values) first, then ``observation`` (6,148). The executor may use
   only actions 0-3, and the env rejects a masked action (``InvalidAction``), so
   :class:`Policy` puts -inf on the logits the mask forbids.
 * **No global state.** The env has no ``state()``; :class:`NoState` makes the wrapper say

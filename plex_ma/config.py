@@ -170,8 +170,8 @@ def cpu_recipe(method: str) -> dict:
 
 
 def smoke_recipe(method: str) -> dict:
-    """The cpu recipe shrunk to finish in well under two minutes on two cores (it still
-    writes a checkpoint)."""
+    """The cpu recipe at a smoke test's size (fewer steps, worlds and scenes, 64 px, 2 PPO
+    epochs), to finish in well under two minutes on two cores (it still writes a checkpoint)."""
     return cpu_recipe(method) | dict(total_steps=1_500, num_envs=4, resolution=64, rollout_steps=32,
                                      num_scenes=4, ppo_epochs=2, checkpoint_interval=5, keep_checkpoints=1)
 

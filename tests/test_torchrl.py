@@ -135,6 +135,23 @@ def test_credit(example):
     assert planner_spans >= 3  # planner transitions that earned rewards during executor turns
 
 
+def test_encoders_read_the_goal_vector_after_their_image(example):
+    """Each agent's encoder splits its compat observation where the env puts the goal vector:
+    after the one-hot id and the planner's whole ego map (every channel) or the executor's RGB-D."""
+    env = plex_nav_v0.env(**SMALL)
+    ego = env.observation_space("planner")["ego_map"].shape
+    assert example.Encoder("planner").vec_at == 2 + int(np.prod(ego))
+    assert example.Encoder("executor", image_size=32).vec_at == 2 + 4 * 32 * 32
+    obs = plex_nav_v0.compat_env(**SMALL)
+    obs.reset(seed=0)
+    x = torch.as_tensor(obs.observe("planner")["observation"])[None]
+    native = plex_nav_v0.env(**SMALL)
+    native.reset(seed=0)
+    goal = native.observe("planner")["goal"]
+    at = example.Encoder("planner").vec_at
+    assert torch.allclose(x[0, at:at + 2], torch.as_tensor(goal, dtype=x.dtype))
+
+
 def test_update_changes_both_agents(example):
     torch.manual_seed(1)
     batch, parts, _ = _collect(example, 300)
