@@ -138,18 +138,14 @@ def test_credit(example):
 def test_encoders_read_the_goal_vector_after_their_image(example):
     """Each agent's encoder splits its compat observation where the env puts the goal vector:
     after the one-hot id and the planner's whole ego map (every channel) or the executor's RGB-D."""
-    env = plex_nav_v0.env(**SMALL)
-    ego = env.observation_space("planner")["ego_map"].shape
-    assert example.Encoder("planner").vec_at == 2 + int(np.prod(ego))
-    assert example.Encoder("executor", image_size=32).vec_at == 2 + 4 * 32 * 32
-    obs = plex_nav_v0.compat_env(**SMALL)
-    obs.reset(seed=0)
-    x = torch.as_tensor(obs.observe("planner")["observation"])[None]
-    native = plex_nav_v0.env(**SMALL)
-    native.reset(seed=0)
-    goal = native.observe("planner")["goal"]
+    native, compat = plex_nav_v0.env(**SMALL), plex_nav_v0.compat_env(**SMALL)
     at = example.Encoder("planner").vec_at
-    assert torch.allclose(x[0, at:at + 2], torch.as_tensor(goal, dtype=x.dtype))
+    assert at == 2 + int(np.prod(native.observation_space("planner")["ego_map"].shape))
+    assert example.Encoder("executor", image_size=32).vec_at == 2 + 4 * 32 * 32
+    native.reset(seed=0)
+    compat.reset(seed=0)
+    x = torch.as_tensor(compat.observe("planner")["observation"])
+    assert torch.allclose(x[at:at + 2], torch.as_tensor(native.observe("planner")["goal"], dtype=x.dtype))
 
 
 def test_update_changes_both_agents(example):
