@@ -219,6 +219,23 @@ def test_table1_steps_to_success_count_the_learned_planner_only(tmp_path):
         assert np.isnan(curve["success"][:2]).all() and curve["success"][2] == 0.45, name
 
 
+def test_table1_curves_are_drawn_across_a_resumed_runs_empty_window():
+    """After a resume a run's window restarts empty (NaN): its line bridges the gap, and the
+    band is NaN only where no seed has a full window yet."""
+    from plex_ma.experiments.table1 import mean_band
+
+    nan = np.nan
+    curves = [{"step": np.array([10.0, 20, 30, 40, 50]), "success": np.array([nan, 0.2, nan, nan, 0.6])},
+              {"step": np.array([10.0, 20, 30, 40, 50]), "success": np.array([nan, 0.4, 0.5, nan, 0.8])},
+              {"step": np.array([10.0, 20]), "success": np.array([nan, nan])}]  # no full window: left out
+    mean, lo, hi, seeds = mean_band(curves, "success", np.array([0.0, 20, 40, 50]))
+    assert seeds == 2
+    s0_at_40 = 0.2 + (0.6 - 0.2) * 2 / 3  # seed 0's line from step 20 to step 50
+    assert np.isnan(mean[0]) and np.allclose(mean[1:], [0.3, (s0_at_40 + 0.65) / 2, 0.7])
+    assert np.allclose(lo[1:], [0.2, s0_at_40, 0.6]) and np.allclose(hi[1:], [0.4, 0.65, 0.8])
+    assert mean_band(curves[2:], "success", np.array([0.0, 20])) is None
+
+
 def test_table1_trains_and_evaluates_one_smoke_run(tmp_path):
     """The real path: the train CLI, then the evaluate CLI, then the report."""
     out, runs = tmp_path / "out", tmp_path / "runs"

@@ -271,15 +271,25 @@ def _curves(out: Path, name: str, seeds: list[int]) -> list[dict]:
     return [c for s in seeds if (c := _load_curve(out / "runs" / f"{name}-s{s}" / "metrics.jsonl.gz"))]
 
 
-def _plot_mean_band(ax, curves: list[dict], key: str, label: str, budget: int) -> None:
-    if not curves:
-        return
-    grid = np.linspace(0, budget, 101)
-    ys = np.array([np.interp(grid, c["step"], c[key], left=np.nan, right=np.nan) for c in curves])
-    with warnings.catch_warnings():  # steps before a run's first finished episode are all-NaN
+def mean_band(curves: list[dict], key: str, grid: np.ndarray) -> tuple[np.ndarray, ...] | None:
+    """Mean, min and max over seeds of curve ``key`` on ``grid``; NaN where no seed has logged
+    a full window yet, None without any. A resumed run's window restarts empty, so its curve
+    has NaN stretches: each seed's line is drawn across them."""
+    ys = [np.interp(grid, c["step"][ok], c[key][ok], left=np.nan, right=np.nan)
+          for c in curves if (ok := ~np.isnan(c[key])).any()]
+    if not ys:
+        return None
+    with warnings.catch_warnings():  # grid steps before any seed's first full window are all-NaN
         warnings.simplefilter("ignore", RuntimeWarning)
-        mean, lo, hi = np.nanmean(ys, axis=0), np.nanmin(ys, axis=0), np.nanmax(ys, axis=0)
-    line, = ax.plot(grid, mean, label=f"{label} ({len(curves)} seeds)")
+        return np.nanmean(ys, axis=0), np.nanmin(ys, axis=0), np.nanmax(ys, axis=0), len(ys)
+
+
+def _plot_mean_band(ax, curves: list[dict], key: str, label: str, budget: int) -> None:
+    grid = np.linspace(0, budget, 101)
+    if (band := mean_band(curves, key, grid)) is None:
+        return
+    mean, lo, hi, seeds = band
+    line, = ax.plot(grid, mean, label=f"{label} ({seeds} seeds)")
     ax.fill_between(grid, lo, hi, color=line.get_color(), alpha=0.2)
 
 
