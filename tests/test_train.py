@@ -55,14 +55,19 @@ def test_smoke_training_every_method(tmp_path, method, eli):
 
 
 def test_resume_restores_optimizer_and_step(tmp_path, capsys):
-    cfg = tiny(tmp_path)
+    """A resume restores the weights, the optimisers, the step and the window of finished
+    episodes, so the logged training success goes on where it stopped."""
+    cfg = tiny(tmp_path, max_steps=20)
     t1 = make_trainer(cfg)
     t1.train()
     t1.close()
     saved = load_checkpoint(tmp_path / "run" / "latest.pt")
+    window = saved["episodes"]["success"]
+    assert len(window) > 0 and window == [float(x) for x in t1.stats.success]
     t2 = make_trainer(replace(cfg, total_steps=cfg.total_steps * 2))
     assert "resuming" in capsys.readouterr().out
     assert t2.step == saved["step"] and t2.updates == saved["updates"]
+    assert list(t2.stats.success) == window and list(t2.stats.reward) == saved["episodes"]["reward"]
     for k, opt in t2.opts.items():
         a, b = opt.state_dict()["state"], saved["optimizers"][k]["state"]
         assert a.keys() == b.keys() and len(a) > 0
@@ -74,6 +79,9 @@ def test_resume_restores_optimizer_and_step(tmp_path, capsys):
     t2.train()
     t2.close()
     assert load_checkpoint(tmp_path / "run" / "latest.pt")["step"] >= 2 * cfg.total_steps
+    rows = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    resumed = [r for r in rows if r["step"] > saved["step"]]
+    assert resumed and resumed[0].get("metrics/episodes", 0) >= len(window)
 
 
 def test_anneal_lr_falls_linearly_to_zero_at_the_last_step(tmp_path):

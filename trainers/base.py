@@ -110,6 +110,18 @@ class EpisodeStats:
         self.spl.append(info["spl"])
         self.reward.append(reward)
 
+    def state(self) -> dict:
+        """The window as plain lists, for a checkpoint: a resumed run's logged metrics go on
+        from where they stopped."""
+        return {k: [float(x) for x in getattr(self, k)] for k in ("success", "spl", "reward")}
+
+    @classmethod
+    def from_state(cls, state: dict) -> EpisodeStats:
+        stats = cls()
+        for k, values in state.items():
+            getattr(stats, k).extend(values)
+        return stats
+
     def summary(self) -> dict:
         if not self.success:
             return {}
@@ -192,6 +204,7 @@ class Trainer:
                 "models": {k: m.state_dict() for k, m in self.nets.items()},
                 "optimizers": {k: o.state_dict() for k, o in self.opts.items()},
                 "torch_rng": torch.get_rng_state(), "sampler_rng": self.gen.get_state(),
+                "episodes": self.stats.state(),
                 # actions sampled on a GPU draw from its generator
                 **({"cuda_rng": torch.cuda.get_rng_state(self.device)} if self.device.type == "cuda" else {})}
 
@@ -225,6 +238,7 @@ class Trainer:
         self.updates = {k: int(v) for k, v in state["updates"].items()}
         torch.set_rng_state(state["torch_rng"])
         self.gen.set_state(state["sampler_rng"])
+        self.stats = EpisodeStats.from_state(state.get("episodes", {}))  # older checkpoints: empty
         if "cuda_rng" in state and self.device.type == "cuda":
             torch.cuda.set_rng_state(state["cuda_rng"], self.device)
 

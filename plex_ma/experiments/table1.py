@@ -272,9 +272,10 @@ def _curves(out: Path, name: str, seeds: list[int]) -> list[dict]:
 
 
 def mean_band(curves: list[dict], key: str, grid: np.ndarray) -> tuple[np.ndarray, ...] | None:
-    """Mean, min and max over seeds of curve ``key`` on ``grid``; NaN where no seed has logged
-    a full window yet, None without any. A resumed run's window restarts empty, so its curve
-    has NaN stretches: each seed's line is drawn across them."""
+    """Mean, min and max over seeds of curve ``key`` on ``grid``, and the seeds counted; NaN
+    where no seed has logged a full window yet, None without any. A run resumed from an older
+    checkpoint restarted its window empty, so its curve has NaN stretches: each seed's line
+    is drawn across them."""
     ys = [np.interp(grid, c["step"][ok], c[key][ok], left=np.nan, right=np.nan)
           for c in curves if (ok := ~np.isnan(c[key])).any()]
     if not ys:
