@@ -220,8 +220,8 @@ def test_table1_steps_to_success_count_the_learned_planner_only(tmp_path):
 
 
 def test_table1_curves_are_drawn_across_a_resumed_runs_empty_window():
-    """After a resume a run's window restarts empty (NaN): its line bridges the gap, and the
-    band is NaN only where no seed has a full window yet."""
+    """A run resumed from a checkpoint without the episode window restarted it empty (NaN):
+    its line bridges the gap, and the band is NaN only where no seed has a full window yet."""
     from plex_ma.experiments.table1 import mean_band
 
     nan = np.nan
