@@ -113,7 +113,7 @@ class EpisodeStats:
     def state(self) -> dict:
         """The window as plain lists, for a checkpoint: a resumed run's logged metrics go on
         from where they stopped."""
-        return {k: [float(x) for x in getattr(self, k)] for k in ("success", "spl", "reward")}
+        return {f.name: [float(x) for x in getattr(self, f.name)] for f in dataclasses.fields(self)}
 
     @classmethod
     def from_state(cls, state: dict) -> EpisodeStats:

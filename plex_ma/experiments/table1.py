@@ -271,7 +271,7 @@ def _curves(out: Path, name: str, seeds: list[int]) -> list[dict]:
     return [c for s in seeds if (c := _load_curve(out / "runs" / f"{name}-s{s}" / "metrics.jsonl.gz"))]
 
 
-def mean_band(curves: list[dict], key: str, grid: np.ndarray) -> tuple[np.ndarray, ...] | None:
+def mean_band(curves: list[dict], key: str, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
     """Mean, min and max over seeds of curve ``key`` on ``grid``, and the seeds counted; NaN
     where no seed has logged a full window yet, None without any. A run resumed from an older
     checkpoint restarted its window empty, so its curve has NaN stretches: each seed's line
