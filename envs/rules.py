@@ -138,8 +138,8 @@ def progress_reward(d_prev: np.ndarray, d_new: np.ndarray, collided: np.ndarray,
 def _serial_for_one_world(method):
     """Run ``method`` with one numba thread when there is a single world (the AEC and gym
     envs). One world leaves the kernels nothing to share out, so worker threads would only
-    add their wake-ups (on numba's OpenMP layer, whose threads spin, single-world steps beside
-    other busy processes ran up to ten times slower)."""
+    add their wake-ups (numba's OpenMP threads spin, which slows single-world steps badly
+    beside other busy processes)."""
 
     @functools.wraps(method)
     def run(self, *args, **kwargs):

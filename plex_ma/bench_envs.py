@@ -243,9 +243,8 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
     # The raw simulator starts in the vector env's first episodes (the same houses and
     # poses: the cost of rendering depends on them) and resets at its long-run rate.
     raw = _RawSim(num_envs, resolution, seed, scenes, num_scenes, episodes=list(venv.worlds.sim.episodes), steady=True)
-    # A long run has met every house: its corner graph (built on a house's first sub-goal,
-    # ~4 ms each) is in place. Without this, a short bench would time that one-off cost
-    # whenever an episode starts in a house not seen yet.
+    # A long run has built every house's corner graph; without this a short bench would time
+    # that one-off cost whenever an episode starts in a house not seen yet.
     venv.worlds.sim.prepare_geodesics()
     run_vec(vec_actions(warmup))
     raw.run(raw.actions(warmup))

@@ -135,7 +135,7 @@ def test_bad_values_are_one_line(tmp_path, capsys, main, argv, names):
     (record.main, ["--policy", "random", "--out", "DIR/r.rrd", "--topdown-png", "FILE/t.png"], ["--topdown-png"]),
     (episodes.main, ["make", "--split", "val", "--num-episodes", "2", "--seed", "0", "--out", "FILE/e.json.gz"],
      ["--out", "is not a directory"]),
-    (scenes.main, ["render", "--source", "procgen", "--count", "1", "--out", "FILE"], ["--out", "is not a directory"]),
+    (scenes.main, ["render", "procgen", "--count", "1", "--out", "FILE"], ["--out", "is not a directory"]),
 ])
 def test_unwritable_outputs_are_one_line(tmp_path, capsys, main, argv, names):
     """An output path through a file, or a directory where a file goes: refused before any work."""

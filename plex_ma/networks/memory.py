@@ -39,11 +39,8 @@ class GRUMemory(nn.Module):
     def sequence(self, x: torch.Tensor, state: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
         """x (T, B, D), starts (T, B) -> (T, B, hidden): the same GRU as :meth:`step`, with
         the memory cleared where ``starts``."""
-        # PLEX's executor restarts its memory with every sub-goal, so some sequence starts
-        # at almost every time step and cutting time into reset-free chunks for nn.GRU
-        # leaves chunks of one or two steps. Instead, project all inputs in one matmul and
-        # run only the recurrent half step by step (PyTorch's gate order r, z, n):
-        # 1.7-2x faster forward + backward than per-chunk nn.GRU calls at T=64, B=8.
+        # Memory restarts at almost every step (each sub-goal), so reset-free nn.GRU chunks
+        # would be one or two steps long: project all inputs at once, recur step by step.
         g = self.gru
         gi = F.linear(x, g.weight_ih_l0, g.bias_ih_l0)
         keep = (~starts).unsqueeze(-1).to(x.dtype)
