@@ -51,7 +51,7 @@ class TrainConfig:
     preset: Preset = "cpu"
     """the recipe: cpu (these defaults for PLEX: best per CPU hour here), smoke (the cpu recipe in < 2 min), paper (the paper's settings)"""
     total_steps: int = 2_048_000
-    """environment steps (agent actions) to train for"""
+    """environment steps (agent actions) to train for (0: write the untrained networks, the untrained agent of every results table)"""
     num_envs: int = 32
     """worlds simulated in parallel"""
     seed: int = 0
@@ -94,6 +94,8 @@ class TrainConfig:
     """value loss weight"""
     max_grad_norm: float = 0.5
     """gradient clipping norm"""
+    planner_prior: bool = True
+    """PLEX only: the planner's sub-goal mean is the value-iteration sub-goal (or the goal) plus learned offsets, and a hand-set skip from the goal distance sets its stop (networks.PriorPlanner); --no-planner-prior: every output is learned from standard initialisation (networks.Planner, docs/spec.md section 6)"""
     executor_stop_prior: float | None = 0.15
     """PLEX only: start the executor's STOP at p = 0.5 this many metres from its sub-goal, rising nearer and vanishing farther (a skip from the sub-goal distance; None: no skip)"""
     executor_heading_prior: float | None = 3.0
@@ -209,7 +211,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     cfg.env.validate()  # the env's fields, by the env's own rules
 
     need(cfg.method in get_args(Method), "method", "unknown method")
-    need(cfg.total_steps > 0, "total_steps", "must be positive")
+    need(cfg.total_steps >= 0, "total_steps", "must be >= 0 (0 writes the untrained networks)")
     need(cfg.num_envs >= 1, "num_envs", "must be >= 1")
     need(cfg.env.resolution >= CNN_MIN_RESOLUTION, "resolution",
          f"must be >= {CNN_MIN_RESOLUTION} to train: the executor's CNN needs {CNN_MIN_RESOLUTION} px")

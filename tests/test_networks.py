@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from plex_ma.networks import ELI_DIM, SUBGOAL_MARGIN, Executor, FlatMapPolicy, FlatPolicy, Planner
+from plex_ma.networks import ELI_DIM, STOP_INIT_LOGIT, SUBGOAL_MARGIN, Executor, FlatMapPolicy, FlatPolicy, Planner, PriorPlanner
 from plex_ma.trainers.base import build_policies
 from plex_ma.trainers.ppo import RolloutBuffer
 
@@ -15,7 +15,7 @@ from plex_ma.trainers.ppo import RolloutBuffer
 @pytest.fixture(scope="module")
 def planner():
     torch.manual_seed(0)
-    return Planner()
+    return PriorPlanner()
 
 
 def _stack(obs_list):
@@ -138,26 +138,29 @@ def test_planner_without_eli_ignores_it():
     assert torch.equal(v1, pl.evaluate_actions(obs, torch.zeros(2), torch.zeros(2, 2))[2])
 
 
-def test_planner_actions():
+def _check_log_probs(pl, obs, out):
+    """A planner's act() output: its shapes; the log-prob is computed on the raw sample and
+    evaluate_actions reproduces it; a stop decision's log-prob ignores the (unused) sub-goal."""
+    raw, n = out["raw_subgoal"], len(out["stop"])
+    assert out["raw_subgoal"].shape == out["subgoal"].shape == (n, 2)
+    assert out["log_prob"].shape == out["value"].shape == (n,)
+    log_prob, _, value = pl.evaluate_actions(obs, out["stop"], raw)
+    torch.testing.assert_close(log_prob, out["log_prob"])
+    torch.testing.assert_close(value, out["value"])
+    ones = torch.ones(n, dtype=torch.long)
+    torch.testing.assert_close(pl.evaluate_actions(obs, ones, raw)[0], pl.evaluate_actions(obs, ones, raw + 3)[0])
+
+
+def test_prior_planner_actions():
     torch.manual_seed(0)
-    pl = Planner(rho_max=4.0, init_std=math.exp(1.5), channels=(8, 8), hidden=64)  # wide std: samples leave the box
+    pl = PriorPlanner(rho_max=4.0, init_std=math.exp(1.5), channels=(8, 8), hidden=64)  # wide std: samples leave the box
     obs = pl.example_obs(256)
     out = pl.act(obs)
-    assert out["stop"].shape == (256,) and out["raw_subgoal"].shape == out["subgoal"].shape == (256, 2)
-    assert out["log_prob"].shape == out["value"].shape == (256,)
     raw, env = out["raw_subgoal"], out["subgoal"]
     assert ((raw[:, 0] < 0) | (raw[:, 0] > 4)).any() and (raw[:, 1].abs() > math.pi).any()
     assert env[:, 0].min() >= 0 and env[:, 0].max() <= 4 and env[:, 1].double().abs().max() <= math.pi
     torch.testing.assert_close(torch.cos(env[:, 1]), torch.cos(raw[:, 1]), atol=1e-5, rtol=0)  # wrapped, not clipped
-    # log-prob is computed on the raw sample; evaluate_actions reproduces it
-    log_prob, _, value = pl.evaluate_actions(obs, out["stop"], raw)
-    torch.testing.assert_close(log_prob, out["log_prob"])
-    torch.testing.assert_close(value, out["value"])
-    # a stop decision's log-prob does not depend on the (unused) sub-goal
-    ones = torch.ones(256, dtype=torch.long)
-    lp_a = pl.evaluate_actions(obs, ones, raw)[0]
-    lp_b = pl.evaluate_actions(obs, ones, raw + 3)[0]
-    torch.testing.assert_close(lp_a, lp_b)
+    _check_log_probs(pl, obs, out)
     edge = pl.subgoal_to_env(torch.tensor([[5.0, math.pi], [-1.0, -math.pi], [1.0, 3 * math.pi / 2]], dtype=torch.float32))
     assert edge[:, 0].tolist() == [4.0, 0.0, 1.0] and edge[:, 1].double().abs().max() <= math.pi
     assert edge[2, 1].item() == pytest.approx(-math.pi / 2)
@@ -227,14 +230,14 @@ def test_flops_and_matmul_speed(planner):
     assert matmul_gflops(n=256, seconds=0.05) > 0
 
 
-def test_planner_sets_no_subgoal_within_the_executors_radius():
+def test_prior_planner_sets_no_subgoal_within_the_executors_radius():
     """Given the executor's sub-goal radius, the sub-goals sent to the env lie at least
     SUBGOAL_MARGIN beyond it (a nearer one pays the executor nothing), whatever the sample;
     the raw sample, on which the log-prob is computed, is left as it was."""
     raw = torch.tensor([[-0.3, 0.5], [0.0, 1.0], [0.1, -1.0], [0.3, 2.0], [5.0, 0.0]])
-    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64, subgoal_radius=0.2)
+    pl = PriorPlanner(rho_max=4.0, channels=(8, 8), hidden=64, subgoal_radius=0.2)
     assert pl.subgoal_to_env(raw)[:, 0].tolist() == pytest.approx([0.25, 0.25, 0.25, 0.3, 4.0])
-    assert Planner(rho_max=4.0, channels=(8, 8), hidden=64).subgoal_to_env(raw)[:, 0].tolist() == pytest.approx(
+    assert PriorPlanner(rho_max=4.0, channels=(8, 8), hidden=64).subgoal_to_env(raw)[:, 0].tolist() == pytest.approx(
         [0.0, 0.0, 0.1, 0.3, 4.0])
     from plex_ma.config import preset_defaults
     assert build_policies(preset_defaults("cpu"))["planner"].min_subgoal_distance == pytest.approx(0.2 + SUBGOAL_MARGIN)
@@ -244,7 +247,7 @@ def test_planner_heads_start_goal_relative():
     """The heads start goal-relative: an untrained planner's mean sub-goal is (min(d, 1.5 m),
     the goal's direction) whatever the map, it stops near the goal and rarely elsewhere."""
     torch.manual_seed(0)
-    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64)
+    pl = PriorPlanner(rho_max=4.0, channels=(8, 8), hidden=64)
     obs = pl.example_obs(64)
     obs["goal"] = torch.stack([torch.linspace(0.0, 8.0, 64), torch.linspace(-3.0, 3.0, 64)], 1)
     stop_d, sub_d, _ = pl(obs)
@@ -258,7 +261,7 @@ def test_planner_heads_start_goal_relative():
     near["goal"] = torch.tensor([[0.05, 0.0], [0.18, 1.0], [0.194, 0.5], [0.2, -2.0], [0.3, 3.0]])
     assert pl.act(near, deterministic=True)["stop"].tolist() == [1, 1, 1, 0, 0]
     # ... and the threshold follows the success distance it is built for
-    wide = Planner(rho_max=4.0, channels=(8, 8), hidden=64, stop_distance=0.36)
+    wide = PriorPlanner(rho_max=4.0, channels=(8, 8), hidden=64, stop_distance=0.36)
     wide.load_state_dict({k: v for k, v in pl.state_dict().items() if not k.startswith("stop_skip")}, strict=False)
     near["goal"][:, 0] = torch.tensor([0.05, 0.3, 0.35, 0.36, 0.4])
     assert wide.act(near, deterministic=True)["stop"].tolist() == [1, 1, 1, 0, 0]
@@ -270,7 +273,7 @@ def test_planner_heads_start_goal_relative():
 def test_planner_offsets_shrink_near_the_goal():
     """The heads' offsets from the goal-directed prior count in full from 1 m out, not at all
     within 0.2 m, linearly between: near the goal the sub-goal is the goal."""
-    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64)
+    pl = PriorPlanner(rho_max=4.0, channels=(8, 8), hidden=64)
     with torch.no_grad():
         pl.subgoal_mean[-1].weight.zero_()
         pl.subgoal_mean[-1].bias.copy_(torch.tensor([-0.4, 0.6]))  # a learned offset: 0.4 m nearer, 0.6 rad left
@@ -305,6 +308,81 @@ def test_executor_heading_prior_turns_towards_the_subgoal():
     p = torch.softmax(ex(obs, ex.initial_state(5), torch.ones(5, dtype=torch.bool))[0], -1)
     assert p[:, 1:].argmax(-1)[:4].tolist() == [0, 1, 2, 1]  # forward, left, right; behind: left (sin 3 > 0)
     assert p[0, 1] > 0.85 and p[1, 2] > 0.85 and p[2, 3] > 0.85 and p[4, 0] > 0.85
+
+
+def test_planner_actions():
+    torch.manual_seed(0)
+    pl = Planner(rho_max=4.0, init_std=math.exp(1.5), channels=(8, 8), hidden=64)  # wide std: samples leave the box
+    obs = pl.example_obs(256)
+    out = pl.act(obs)
+    raw, env = out["raw_subgoal"], out["subgoal"]  # raw: (forward, left) m; env: (distance, direction)
+    assert (torch.hypot(raw[:, 0], raw[:, 1]) > 4).any()
+    assert env[:, 0].min() >= 0 and env[:, 0].max() <= 4 and env[:, 1].double().abs().max() <= math.pi
+    torch.testing.assert_close(env[:, 1], torch.atan2(raw[:, 1], raw[:, 0]), atol=1e-6, rtol=0)
+    _check_log_probs(pl, obs, out)
+    edge = pl.subgoal_to_env(torch.tensor([[5.0, 0.0], [-1.0, 0.0], [0.0, -1.0]], dtype=torch.float32))
+    assert edge[:, 0].tolist() == [4.0, 1.0, 1.0]
+    assert edge[:, 1].tolist() == pytest.approx([0.0, math.pi, -math.pi / 2], abs=1e-6)
+
+
+
+
+def test_planner_sets_no_subgoal_within_the_executors_radius():
+    """Given the executor's sub-goal radius, the sub-goals sent to the env lie at least
+    SUBGOAL_MARGIN beyond it (a nearer one pays the executor nothing), whatever the sample;
+    the raw sample, on which the log-prob is computed, is left as it was."""
+    raw = torch.tensor([[-0.1, 0.0], [0.0, 0.0], [0.1, 0.0], [0.0, 0.3], [5.0, 0.0]])
+    pl = Planner(rho_max=4.0, channels=(8, 8), hidden=64, subgoal_radius=0.2)
+    assert pl.subgoal_to_env(raw)[:, 0].tolist() == pytest.approx([0.25, 0.25, 0.25, 0.3, 4.0])
+    assert Planner(rho_max=4.0, channels=(8, 8), hidden=64).subgoal_to_env(raw)[:, 0].tolist() == pytest.approx(
+        [0.1, 0.0, 0.1, 0.3, 4.0])
+    from plex_ma.config import preset_defaults
+
+
+def test_untrained_policies_know_nothing_of_the_goal():
+    """docs/spec.md section 6: no hand-set state-dependent term in any policy output. The
+    untrained planner's mean sub-goal stays near the agent and its p(stop) at its constant
+    starting value wherever the goal is; the untrained executor's four actions are about equally likely wherever its
+    sub-goal is."""
+    torch.manual_seed(0)
+    from plex_ma.config import preset_defaults, replace
+
+    pl = build_policies(replace(preset_defaults("cpu"), planner_prior=False))["planner"]
+    obs = pl.example_obs(64)
+    obs["goal"] = torch.stack([torch.linspace(0.0, 8.0, 64), torch.linspace(-3.0, 3.0, 64)], 1)
+    stop_d, sub_d, _ = pl(obs)
+    assert sub_d.mean.abs().max() < 0.2
+    p_stop = torch.sigmoid(torch.tensor(STOP_INIT_LOGIT))  # a constant bias, the same in every state
+    torch.testing.assert_close(stop_d.probs[:, 1], p_stop.expand(64), atol=0.01, rtol=0)
+    ex = Executor(resolution=40, gru_hidden=16)
+    ex_obs = ex.example_obs(5)
+    ex_obs["subgoal"] = torch.tensor([[2.0, 0.0], [2.0, 1.5], [2.0, -1.5], [2.0, 3.0], [0.05, 0.0]])
+    p = torch.softmax(ex(ex_obs, ex.initial_state(5), torch.ones(5, dtype=torch.bool))[0], -1)
+    torch.testing.assert_close(p, torch.full_like(p, 0.25), atol=0.02, rtol=0)
+
+
+def test_plan_features_are_positions_in_the_agents_frame():
+    """plan_features: the goal clipped to the read-out's reach and the value-iteration
+    sub-goal, each as (forward, left) metres; zeros without the module."""
+    from plex_ma.networks import SUBGOAL_REACH, plan_features
+
+    goal = torch.tensor([[1.0, 0.0], [8.0, math.pi / 2]])
+    vin = torch.tensor([[0.5, math.pi], [2.0, -math.pi / 2]])
+    expect = torch.tensor([[1.0, 0.0, -0.5, 0.0], [0.0, SUBGOAL_REACH, 0.0, -2.0]])
+    torch.testing.assert_close(plan_features(goal, vin), expect, atol=1e-6, rtol=0)
+    torch.testing.assert_close(plan_features(goal, None)[:, 2:], torch.zeros(2, 2))
+
+
+def test_prior_free_planner_init():
+    """Every layer of the prior-free planner under CleanRL's initialisation: no hand-set weight."""
+    pl = Planner(channels=(8, 8), hidden=64)
+    for head, gain in ((pl.stop_logits, 0.01), (pl.subgoal_mean, 0.01), (pl.critic, 1.0)):
+        _assert_orthogonal(head.mlp[0].weight, math.sqrt(2))
+        _assert_orthogonal(head.mlp[-1].weight, gain)
+        _assert_orthogonal(head.linear.weight, gain)
+        assert torch.all(head.mlp[-1].bias == 0)
+    assert pl.stop_logits.linear.bias.tolist() == [0.0, STOP_INIT_LOGIT] and torch.all(pl.subgoal_mean.linear.bias == 0)
+    assert not hasattr(pl, "stop_skip")
 
 
 def test_cnn_min_resolution_is_the_smallest_image_the_executor_takes():

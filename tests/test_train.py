@@ -54,6 +54,28 @@ def test_smoke_training_every_method(tmp_path, method, eli):
         assert prefix + k in keys
 
 
+@pytest.mark.parametrize("method", ["plex-gru", "ppo-gru-map"])
+def test_zero_steps_writes_the_untrained_agent(tmp_path, method):
+    """``--total-steps 0`` writes the fresh networks (the untrained agent of every results
+    table) without a step of training, and ``evaluate`` reads them."""
+    from plex_ma.train import main as train_main
+
+    run = tmp_path / "run"
+    train_main(["--preset", "smoke", "--method", method, "--total-steps", "0", "--run-dir", str(run),
+                "--no-progress", "--seed", "3"])
+    state = load_checkpoint(run / "latest.pt")
+    assert state["step"] == 0 and all(v == 0 for v in state["updates"].values())
+    fresh = make_trainer(replace(preset_defaults("smoke", method), run_dir=str(tmp_path / "other"), seed=3,
+                                 progress=False))
+    for name, net in fresh.nets.items():  # the same seed builds the same networks
+        for k, v in net.state_dict().items():
+            assert torch.equal(v, state["models"][name][k]), (name, k)
+    fresh.close()
+    res = evaluate_main(["--checkpoint", str(run / "latest.pt"), "--split", "val", "--episodes", "2",
+                         "--num-envs", "2"])
+    assert res["episodes"] == 2
+
+
 def test_resume_restores_optimizer_and_step(tmp_path, capsys):
     """A resume restores the weights, the optimisers, the step and the window of finished
     episodes, so the logged training success goes on where it stopped."""

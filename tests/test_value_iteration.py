@@ -9,7 +9,7 @@ import torch
 
 from plex_ma.envs.map_planner import _NEIGHBOURS, _distances
 from plex_ma.envs.rules import ELI_DIM
-from plex_ma.networks import Executor, Planner, ValueIteration, bellman, bellman_reference
+from plex_ma.networks import Executor, Planner, PriorPlanner, ValueIteration, bellman, bellman_reference
 
 
 def test_bellman_matches_dijkstra_on_a_random_grid():
@@ -113,11 +113,11 @@ def test_stop_gradient_holds_with_the_value_iteration_planner():
     assert ELI_DIM == eli.shape[1]
 
 
-def test_untrained_value_iteration_planner_follows_its_module():
-    """Far from the goal the untrained planner's mean sub-goal is the module's (the heads
+def test_untrained_prior_planner_follows_its_module():
+    """Far from the goal the untrained prior planner's mean sub-goal is the module's (the heads
     start near zero); within 0.2 m of the goal it is the goal."""
     torch.manual_seed(0)
-    pl = Planner(channels=(8, 8), hidden=64, value_iteration=True)
+    pl = PriorPlanner(channels=(8, 8), hidden=64, value_iteration=True)
     obs = pl.example_obs(1)
     obs["ego_map"] = torch.zeros(1, 2, 32, 32)
     obs["ego_map"][0, 0, 12, :] = 1.0

@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from plex_ma.config import TrainConfig, from_dict, setting
 from plex_ma.envs.rules import NavConfig
-from plex_ma.networks import Executor, FlatMapPolicy, FlatPolicy, Planner
+from plex_ma.networks import Executor, FlatMapPolicy, FlatPolicy, Planner, PriorPlanner
 
 from . import distributed
 from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
@@ -32,7 +32,7 @@ from .ppo import PPOConfig
 
 CHECKPOINT_FORMAT = 1
 # Config fields added after checkpoints were first written, with the value older ones had.
-LEGACY_CONFIG = {"planner_value_iteration": False, "planner_fine_map": False, "planner_step_gamma": None,
+LEGACY_CONFIG = {"planner_prior": True, "planner_value_iteration": False, "planner_fine_map": False, "planner_step_gamma": None,
                  "executor_no_reversal": False}
 # Retired config fields and the one value the current networks build: a checkpoint saved
 # with another names the field in its error
@@ -41,7 +41,7 @@ RETIRED_CONFIG = {"executor_goal_skip": True}
 
 # The settings that shape the networks (and their action mask): a checkpoint loads only into a run with the same.
 ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_no_reversal")
-PLEX_ARCH_KEYS = ("planner_value_iteration", "planner_fine_map")  # ... and for the methods that read the ego map (the planner's)
+PLEX_ARCH_KEYS = ("planner_prior", "planner_value_iteration", "planner_fine_map")  # ... and for the methods that read the ego map (the planner's)
 NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
 
 
@@ -75,9 +75,10 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     encoder as --planner-value-iteration sets it)."""
     memory = cfg.method.split("-")[1]
     if cfg.method.startswith("plex"):
-        planner = Planner(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max, stop_distance=cfg.env.success_distance,
-                          subgoal_radius=cfg.env.subgoal_radius, init_std=cfg.planner_subgoal_std,
-                          value_iteration=cfg.planner_value_iteration, fine_map=cfg.planner_fine_map)
+        kw = dict(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max, subgoal_radius=cfg.env.subgoal_radius,
+                  init_std=cfg.planner_subgoal_std, value_iteration=cfg.planner_value_iteration,
+                  fine_map=cfg.planner_fine_map)
+        planner = PriorPlanner(stop_distance=cfg.env.success_distance, **kw) if cfg.planner_prior else Planner(**kw)
         return {"planner": planner,
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden,
@@ -279,7 +280,7 @@ class Trainer:
         """With ``anneal_lr``, each optimiser's learning rate falls linearly from its base
         value at step 0 to zero at ``total_steps`` (CleanRL's schedule), set before every update."""
         if self.cfg.anneal_lr:
-            frac = max(1.0 - self.step / self.cfg.total_steps, 0.0)
+            frac = max(1.0 - self.step / self.cfg.total_steps, 0.0) if self.cfg.total_steps else 1.0
             for k, o in self.opts.items():
                 for group in o.param_groups:
                     group["lr"] = self.base_lr[k] * frac

@@ -2,7 +2,8 @@
 
 One module per part:
 
-- ``planner``: :class:`Planner` and its reading of the ego map, :class:`MapEncoder`;
+- ``planner``: the prior-free :class:`Planner`, the old recipe's :class:`PriorPlanner`, and their
+  reading of the ego map, :class:`MapEncoder`;
 - ``value_iteration``: :class:`ValueIteration` over the ego map and its Bellman updates
   (:func:`bellman`, compiled numba loops on the CPU; :func:`bellman_reference`);
 - ``executor``: :class:`Executor` and its RGB-D CNN, :class:`RGBDEncoder`;
@@ -38,8 +39,9 @@ from plex_ma.networks.executor import EXECUTOR_STOP_SLOPE, Executor, ExecutorAct
 from plex_ma.networks.flat import FlatMapPolicy, FlatPolicy
 from plex_ma.networks.memory import GRUMemory, MultiHeadAttention, SMTMemory
 from plex_ma.networks.planner import (GOAL_FEATURES, OFFSET_FULL_DISTANCE, OFFSET_ZERO_DISTANCE, PI32,
-                                      STOP_PRIOR_MARGIN, STOP_PRIOR_SLOPE, SUBGOAL_MARGIN, MapEncoder, Planner,
-                                      PlannerAct, planner_goal_features)
+                                      PLAN_FEATURES, STOP_INIT_LOGIT, STOP_PRIOR_MARGIN, STOP_PRIOR_SLOPE,
+                                      SUBGOAL_MARGIN, Head, MapEncoder, Planner, PlannerAct, PriorPlanner,
+                                      plan_features, planner_goal_features)
 from plex_ma.networks.value_iteration import (BELLMAN_UNREACHED, DIAGONALS, EGO_CELL, SUBGOAL_REACH, ValueIteration,
                                               bellman, bellman_reference)
 
@@ -48,8 +50,10 @@ __all__ = [
     "EXECUTOR_STOP_SLOPE", "Executor", "ExecutorAct", "RGBDEncoder",
     "FlatMapPolicy", "FlatPolicy",
     "GRUMemory", "MultiHeadAttention", "SMTMemory",
-    "GOAL_FEATURES", "OFFSET_FULL_DISTANCE", "OFFSET_ZERO_DISTANCE", "PI32", "STOP_PRIOR_MARGIN", "SUBGOAL_MARGIN",
-    "STOP_PRIOR_SLOPE", "MapEncoder", "Planner", "PlannerAct", "planner_goal_features",
+    "GOAL_FEATURES", "OFFSET_FULL_DISTANCE", "OFFSET_ZERO_DISTANCE", "PI32", "PLAN_FEATURES", "STOP_PRIOR_MARGIN",
+    "STOP_INIT_LOGIT", "STOP_PRIOR_SLOPE", "SUBGOAL_MARGIN", "Head", "MapEncoder", "Planner", "PlannerAct",
+    "PriorPlanner",
+    "plan_features", "planner_goal_features",
     "BELLMAN_UNREACHED", "DIAGONALS", "EGO_CELL", "SUBGOAL_REACH", "ValueIteration", "bellman",
     "bellman_reference",
 ]

@@ -1,5 +1,7 @@
-"""The PLEX planner (:class:`Planner`) and its reading of the ego map (:class:`MapEncoder`,
-which the flat policy with the map shares)."""
+"""The PLEX planners and their reading of the ego map (:class:`MapEncoder`, which the flat
+policy with the map shares): the prior-free :class:`Planner` (``--no-planner-prior``, every
+output learned) and :class:`PriorPlanner` (the cpu preset's current default, whose outputs
+hold the hand-set terms that docs/spec.md section 6 bars)."""
 
 from __future__ import annotations
 
@@ -14,17 +16,20 @@ from torch.distributions import Categorical, Normal
 from plex_ma.envs.rules import ELI_DIM
 from plex_ma.envs.spaces import EGO_CHANNELS, EGO_SIZE
 from plex_ma.networks.common import _conv_out_dim, as_tensor, layer_init, wrap_angle
-from plex_ma.networks.value_iteration import ValueIteration
+from plex_ma.networks.value_iteration import SUBGOAL_REACH, ValueIteration
 
 # float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
 # `|theta| <= pi` range check; clamp to the float32 just below pi instead.
 PI32 = float(np.nextafter(np.float32(np.pi), np.float32(0)))
 
 GOAL_FEATURES = 5  # planner_goal_features' width
-STOP_PRIOR_MARGIN = 0.005  # m: an untrained planner's p(stop) is 0.5 this far inside the success distance
-STOP_PRIOR_SLOPE = 200.0  # stop logit - continue logit per metre nearer the goal than that
+PLAN_FEATURES = 4  # plan_features' width
 SUBGOAL_MARGIN = 0.05  # m: sub-goals lie at least this far beyond the executor's sub-goal radius
-OFFSET_FULL_DISTANCE = 1.0  # m: from here out the sub-goal heads' offsets count in full ...
+STOP_INIT_LOGIT = -3.0  # Planner's constant starting stop bias: p(stop) ~0.05 in every state
+# PriorPlanner's hand-set terms (the old recipe, which docs/spec.md section 6 bars from the defaults):
+STOP_PRIOR_MARGIN = 0.005  # m: its untrained p(stop) is 0.5 this far inside the success distance
+STOP_PRIOR_SLOPE = 200.0  # stop logit - continue logit per metre nearer the goal than that
+OFFSET_FULL_DISTANCE = 1.0  # m: from here out its sub-goal heads' offsets count in full ...
 OFFSET_ZERO_DISTANCE = 0.2  # m: ... and from here in not at all (the sub-goal is the goal), linear between
 
 
@@ -43,6 +48,37 @@ def planner_goal_features(goal: torch.Tensor) -> torch.Tensor:
     the planner decides to stop)."""
     d, th = goal[..., 0], goal[..., 1]
     return torch.stack([d / 10, torch.cos(th), torch.sin(th), torch.exp(-d / 0.5), d.clamp(max=2.0)], dim=-1)
+
+
+def plan_features(goal: torch.Tensor, vin_subgoal: torch.Tensor | None) -> torch.Tensor:
+    """(B, PLAN_FEATURES): where a sub-goal could go, as positions in the agent's frame
+    (forward, left; m), the frame in which the planner's sub-goal is sampled: the goal clipped
+    to the read-out's reach ``SUBGOAL_REACH``, and the value-iteration read-out's sub-goal
+    (zeros without the module). Input features only: the heads learn what to make of them."""
+    d, th = goal[..., 0].clamp(max=SUBGOAL_REACH), goal[..., 1]
+    parts = [d * torch.cos(th), d * torch.sin(th)]
+    if vin_subgoal is None:
+        parts += [torch.zeros_like(d), torch.zeros_like(d)]
+    else:
+        rho, theta = vin_subgoal[..., 0], vin_subgoal[..., 1]
+        parts += [rho * torch.cos(theta), rho * torch.sin(theta)]
+    return torch.stack(parts, dim=-1)
+
+
+class Head(nn.Module):
+    """A policy or value head: an MLP (``hidden`` ReLU units) plus a linear path from the
+    same input, each output layer started at gain ``std`` (CleanRL's init, no hand-set
+    weights). The linear path lets a head follow an input feature (the planner's sub-goal
+    positions) without first having to learn it through the ReLUs."""
+
+    def __init__(self, inputs: int, hidden: int, out: int, std: float):
+        super().__init__()
+        self.mlp = nn.Sequential(layer_init(nn.Linear(inputs, hidden)), nn.ReLU(),
+                                 layer_init(nn.Linear(hidden, out), std=std))
+        self.linear = layer_init(nn.Linear(inputs, out), std=std)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.mlp(x) + self.linear(x)
 
 
 class MapEncoder(nn.Module):
@@ -93,7 +129,126 @@ class MapEncoder(nn.Module):
 
 
 class Planner(MapEncoder):
-    """Planner: ego map CNN + ELI + goal -> 512 -> (+ goal) -> MLP heads: stop logits,
+    """Planner: ego map CNN + ELI + goal -> 512 -> (+ goal and plan features) -> heads: stop
+    logits, Gaussian sub-goal, value.
+
+    The paper gives the trunk (conv 4x4/2, conv 3x3/1, flatten, concatenate the ELI, FC 512,
+    concatenate the goal vector) and leaves the heads open. Here the goal features
+    (:func:`planner_goal_features`) also enter the FC layer, so that map and goal interact,
+    and each head (:class:`Head`) reads the FC output, the goal features and the plan
+    features (:func:`plan_features`: the goal, and the value-iteration read-out's sub-goal,
+    as positions in the agent's frame).
+
+    Every output is a learned function under standard initialisation (docs/spec.md section
+    6): there is no hand-set state-dependent term, so the untrained planner's sub-goals
+    scatter round the agent wherever the goal is. The stop logit starts with a constant bias
+    (``STOP_INIT_LOGIT``, p(stop) about 0.05 in every state): at a coin flip, episodes ended
+    within a decision or two, the executor had nothing to learn from and resets took most of
+    the time.
+
+    Sub-goal action: the policy samples an *unbounded* raw sub-goal position (forward, left)
+    in metres in the agent's frame from two Gaussians with state-dependent means and
+    state-independent learnable log-stds (started at std ``init_std``). A position, unlike
+    (distance, direction), is a linear function of the plan features, and it has no
+    wrap-around. The raw sample is what the rollout buffer stores and what ``log_prob`` is
+    computed on; only the copy sent to the environment is mapped into the action box by
+    ``subgoal_to_env``: (distance, direction) with the distance clipped to
+    [``min_subgoal_distance``, rho_max]. Given the executor's ``subgoal_radius``,
+    ``min_subgoal_distance`` lies ``SUBGOAL_MARGIN`` beyond it: a nearer sub-goal pays the
+    executor nothing (envs/rules.py), so it would STOP on the spot.
+    """
+
+    def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
+                 rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
+                 map_size: int = 32, init_std: float = 0.5, head_hidden: int = 256,
+                 value_iteration: bool = False, subgoal_radius: float | None = None, fine_map: bool = False):
+        # ``convs`` and ``vin`` (the map reading) keep their names: checkpoints key on them
+        super().__init__(ego_channels, channels, map_size, value_iteration, fine_map)
+        self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
+        # no sub-goal within the executor's radius (None: any distance)
+        self.min_subgoal_distance = 0.0 if subgoal_radius is None else min(subgoal_radius + SUBGOAL_MARGIN, rho_max)
+        self.fc = nn.Sequential(layer_init(nn.Linear(self.map_dim + eli_dim + GOAL_FEATURES + self.vin_dim, hidden)),
+                                nn.ReLU())
+        self._build_heads(hidden + GOAL_FEATURES + PLAN_FEATURES, head_hidden)
+        self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
+
+    def _build_heads(self, feat: int, head_hidden: int) -> None:
+        self.stop_logits = Head(feat, head_hidden, 2, 0.01)
+        with torch.no_grad():  # a constant, the same in every state (docs/spec.md section 6 allows it)
+            self.stop_logits.linear.bias[1] = STOP_INIT_LOGIT
+        self.subgoal_mean = Head(feat, head_hidden, 2, 0.01)
+        self.critic = Head(feat, head_hidden, 1, 1.0)
+
+    def features(self, obs: dict) -> torch.Tensor:
+        """(B, hidden + GOAL_FEATURES + PLAN_FEATURES): what the heads read."""
+        dev = self.convs[0].weight.device
+        ego = as_tensor(obs["ego_map"], dev, torch.float32)
+        raw_goal = as_tensor(obs["goal"], dev, torch.float32)
+        goal = planner_goal_features(raw_goal)
+        if self.use_eli:
+            # Stop-gradient (paper 3, SPEC 5): the planner's loss must never reach the
+            # executor's parameters, so the ELI always enters the planner detached.
+            eli = as_tensor(obs["eli"], dev, torch.float32).detach()
+        else:
+            eli = torch.zeros(ego.shape[0], self.eli_dim, device=dev)
+        trunk, vin_features, vin_subgoal = self.read_map(ego, raw_goal)
+        parts = [trunk, eli, goal] + ([vin_features] if vin_features is not None else [])
+        h = self.fc(torch.cat(parts, dim=1))
+        return torch.cat([h, goal, plan_features(raw_goal, vin_subgoal)], dim=1)
+
+    def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
+        """(stop distribution, sub-goal distribution over raw (forward, left) positions, value (B,))."""
+        h = self.features(obs)
+        mean = self.subgoal_mean(h)
+        subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
+        return Categorical(logits=self.stop_logits(h)), subgoal, self.critic(h).squeeze(-1)
+
+    @staticmethod
+    def _log_prob_entropy(stop_d: Categorical, sub_d: Normal, stop: torch.Tensor, subgoal: torch.Tensor):
+        # The sub-goal only matters when the planner continues (stop == 0), so its
+        # log-prob only counts then. The entropy is H(stop) + H(subgoal), not the joint's
+        # exact H(stop) + p(continue) H(subgoal): the latter would let the entropy bonus
+        # push p(continue) up and bias the agent against stopping.
+        cont = (stop == 0).float()
+        log_prob = stop_d.log_prob(stop) + cont * sub_d.log_prob(subgoal).sum(-1)
+        entropy = stop_d.entropy() + sub_d.entropy().sum(-1)
+        return log_prob, entropy
+
+    def subgoal_to_env(self, subgoal: torch.Tensor) -> torch.Tensor:
+        """Map raw (forward, left) samples into the action box: (distance, direction), the
+        distance clipped to [min_subgoal_distance, rho_max]."""
+        rho = torch.hypot(subgoal[..., 0], subgoal[..., 1]).clamp(self.min_subgoal_distance, self.rho_max)
+        theta = torch.atan2(subgoal[..., 1], subgoal[..., 0]).clamp(-PI32, PI32)
+        return torch.stack([rho, theta], dim=-1)
+
+    @torch.no_grad()
+    def act(self, obs: dict, deterministic: bool = False) -> PlannerAct:
+        """One decision per env (:class:`PlannerAct`)."""
+        stop_d, sub_d, value = self(obs)
+        if deterministic:
+            stop, subgoal = stop_d.probs.argmax(-1), sub_d.mean
+        else:
+            stop, subgoal = stop_d.sample(), sub_d.sample()
+        log_prob, _ = self._log_prob_entropy(stop_d, sub_d, stop, subgoal)
+        return PlannerAct(stop=stop, raw_subgoal=subgoal, subgoal=self.subgoal_to_env(subgoal),
+                          log_prob=log_prob, value=value)
+
+    def evaluate_actions(self, obs: dict, stop: torch.Tensor, raw_subgoal: torch.Tensor):
+        """(log_prob, entropy, value), each (B,), for stored actions (raw sub-goal samples)."""
+        stop_d, sub_d, value = self(obs)
+        log_prob, entropy = self._log_prob_entropy(stop_d, sub_d, stop.long(), raw_subgoal)
+        return log_prob, entropy, value
+
+    def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
+        return {"ego_map": torch.rand(batch, EGO_CHANNELS, EGO_SIZE, EGO_SIZE, generator=generator),
+                "goal": torch.rand(batch, 2, generator=generator) * torch.tensor([10.0, 2 * math.pi]) - torch.tensor([0.0, math.pi]),
+                "eli": torch.randn(batch, self.eli_dim, generator=generator)}
+
+
+class PriorPlanner(Planner):
+    """The old recipe's planner (``--planner-prior``), kept as a named option with its own
+    results: its outputs hold hand-set terms that docs/spec.md section 6 bars from the
+    defaults. Planner: ego map CNN + ELI + goal -> 512 -> (+ goal) -> MLP heads: stop logits,
     Gaussian sub-goal, value.
 
     The paper gives the trunk (conv 4x4/2, conv 3x3/1, flatten, concatenate the ELI, FC 512,
@@ -134,26 +289,9 @@ class Planner(MapEncoder):
     there would repeat it until the time-out.
     """
 
-    def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
-                 rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
-                 map_size: int = 32, init_std: float = 0.5, prior_distance: float = 1.5, head_hidden: int = 256,
-                 value_iteration: bool = False, stop_distance: float = 0.2, subgoal_radius: float | None = None,
-                 fine_map: bool = False):
-        # ``convs`` and ``vin`` (the map reading) keep their names: checkpoints key on them
-        super().__init__(ego_channels, channels, map_size, value_iteration, fine_map)
-        self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
-        self.prior_distance = min(prior_distance, rho_max)
-        # no sub-goal within the executor's radius (None: any distance)
-        self.min_subgoal_distance = 0.0 if subgoal_radius is None else min(subgoal_radius + SUBGOAL_MARGIN, rho_max)
-        self.fc = nn.Sequential(layer_init(nn.Linear(self.map_dim + eli_dim + GOAL_FEATURES + self.vin_dim, hidden)),
-                                nn.ReLU())
-        feat = hidden + GOAL_FEATURES
-
-        def mlp(out, std):
-            return nn.Sequential(layer_init(nn.Linear(feat, head_hidden)), nn.ReLU(),
-                                 layer_init(nn.Linear(head_hidden, out), std=std))
-
-        self.stop_logits, self.subgoal_mean, self.critic = mlp(2, 0.01), mlp(2, 0.01), mlp(1, 1.0)
+    def __init__(self, stop_distance: float = 0.2, prior_distance: float = 1.5, **kw):
+        super().__init__(**kw)
+        self.prior_distance = min(prior_distance, self.rho_max)
         self.stop_skip = nn.Linear(GOAL_FEATURES, 2)
         with torch.no_grad():
             self.stop_skip.weight.zero_()
@@ -161,7 +299,15 @@ class Planner(MapEncoder):
             # stop logit - continue logit ~ slope * (stop distance - margin - min(goal distance, 2)) (goal feature 4)
             self.stop_skip.weight[1, 4] = -STOP_PRIOR_SLOPE
             self.stop_skip.bias[1] = STOP_PRIOR_SLOPE * (stop_distance - STOP_PRIOR_MARGIN)
-        self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
+
+    def _build_heads(self, feat: int, head_hidden: int) -> None:
+        feat -= PLAN_FEATURES  # its heads read the FC output and the goal features only
+
+        def mlp(out, std):
+            return nn.Sequential(layer_init(nn.Linear(feat, head_hidden)), nn.ReLU(),
+                                 layer_init(nn.Linear(head_hidden, out), std=std))
+
+        self.stop_logits, self.subgoal_mean, self.critic = mlp(2, 0.01), mlp(2, 0.01), mlp(1, 1.0)
 
     def features(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(B, hidden + GOAL_FEATURES): the trunk's output and the goal features; and the
@@ -197,43 +343,10 @@ class Planner(MapEncoder):
         subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
         return stop, subgoal, self.critic(h).squeeze(-1)
 
-    @staticmethod
-    def _log_prob_entropy(stop_d: Categorical, sub_d: Normal, stop: torch.Tensor, subgoal: torch.Tensor):
-        # The sub-goal only matters when the planner continues (stop == 0), so its
-        # log-prob only counts then. The entropy is H(stop) + H(subgoal), not the joint's
-        # exact H(stop) + p(continue) H(subgoal): the latter would let the entropy bonus
-        # push p(continue) up and bias the agent against stopping.
-        cont = (stop == 0).float()
-        log_prob = stop_d.log_prob(stop) + cont * sub_d.log_prob(subgoal).sum(-1)
-        entropy = stop_d.entropy() + sub_d.entropy().sum(-1)
-        return log_prob, entropy
-
-    def subgoal_to_env(self, subgoal: torch.Tensor) -> torch.Tensor:
+    def subgoal_to_env(self, subgoal: torch.Tensor) -> torch.Tensor:  # raw (rho, theta)
         """Map raw samples into the action box: rho clipped to [min_subgoal_distance, rho_max],
         theta wrapped."""
         rho = subgoal[..., 0].clamp(self.min_subgoal_distance, self.rho_max)
         theta = wrap_angle(subgoal[..., 1]).clamp(-PI32, PI32)
         return torch.stack([rho, theta], dim=-1)
 
-    @torch.no_grad()
-    def act(self, obs: dict, deterministic: bool = False) -> PlannerAct:
-        """One decision per env (:class:`PlannerAct`)."""
-        stop_d, sub_d, value = self(obs)
-        if deterministic:
-            stop, subgoal = stop_d.probs.argmax(-1), sub_d.mean
-        else:
-            stop, subgoal = stop_d.sample(), sub_d.sample()
-        log_prob, _ = self._log_prob_entropy(stop_d, sub_d, stop, subgoal)
-        return PlannerAct(stop=stop, raw_subgoal=subgoal, subgoal=self.subgoal_to_env(subgoal),
-                          log_prob=log_prob, value=value)
-
-    def evaluate_actions(self, obs: dict, stop: torch.Tensor, raw_subgoal: torch.Tensor):
-        """(log_prob, entropy, value), each (B,), for stored actions (raw sub-goal samples)."""
-        stop_d, sub_d, value = self(obs)
-        log_prob, entropy = self._log_prob_entropy(stop_d, sub_d, stop.long(), raw_subgoal)
-        return log_prob, entropy, value
-
-    def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:
-        return {"ego_map": torch.rand(batch, EGO_CHANNELS, EGO_SIZE, EGO_SIZE, generator=generator),
-                "goal": torch.rand(batch, 2, generator=generator) * torch.tensor([10.0, 2 * math.pi]) - torch.tensor([0.0, math.pi]),
-                "eli": torch.randn(batch, self.eli_dim, generator=generator)}
