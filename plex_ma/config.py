@@ -100,6 +100,10 @@ class TrainConfig:
     """PLEX only: start the executor's STOP at p = 0.5 this many metres from its sub-goal, rising nearer and vanishing farther (a skip from the sub-goal distance; None: no skip)"""
     executor_heading_prior: float | None = 3.0
     """PLEX only: start the executor's actor turning towards its sub-goal and moving when it faces it, with this many logits (None: no prior)"""
+    executor_stop_bias: float = 0.0
+    """PLEX only: a constant added to the untrained executor's STOP logit, the same in every state (it sets how long its first turns last)"""
+    planner_subgoal_forward: float = 0.0
+    """PLEX, prior-free planner only: the untrained sub-goal mean's constant start, this many metres ahead in every state"""
     executor_no_reversal: bool = True
     """the executor (and the flat policies, which share its network) never undoes its previous turn within a sub-goal (or episode): no RIGHT right after LEFT, nor LEFT after RIGHT"""
     planner_value_iteration: bool = True

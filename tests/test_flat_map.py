@@ -14,7 +14,7 @@ from plex_ma.envs.rules import NavConfig, PlexConfig, PlexWorlds, PointNavWorlds
 from plex_ma.envs.sim.core import MOVE_FORWARD, TURN_LEFT, TURN_RIGHT
 from plex_ma.envs.vector import PointNavVectorEnv
 from plex_ma.evaluate import main as evaluate_main
-from plex_ma.networks.flat import MAP_PLAN
+from plex_ma.networks.planner import MAP_PLAN
 from plex_ma.networks import FlatMapPolicy, FlatPolicy, MapEncoder, Planner, ValueIteration
 from plex_ma.train import main as train_main
 from plex_ma.trainers import make_trainer
@@ -106,7 +106,7 @@ def test_stored_map_plan_gives_the_same_training_pass():
     for t in range(6):
         steps.append(policy.with_map_plan(obs))
         obs, *_ = env.step(np.array([MOVE_FORWARD, TURN_LEFT, MOVE_FORWARD if t % 2 else TURN_RIGHT]))
-    assert steps[0][MAP_PLAN].shape == (3, policy.map.vin_dim)
+    assert steps[0][MAP_PLAN].shape == (3, policy.map.vin_dim + 2)
     stored = {k: torch.as_tensor(np.stack([s[k] for s in steps])) for k in steps[0]}
     recomputed = {k: v for k, v in stored.items() if k != MAP_PLAN}
     actions, starts = torch.zeros(6, 3), torch.zeros(6, 3, dtype=torch.bool)

@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from plex_ma.networks import ELI_DIM, STOP_INIT_LOGIT, SUBGOAL_MARGIN, Executor, FlatMapPolicy, FlatPolicy, Planner, PriorPlanner
+from plex_ma.envs.sim.core import STOP
+from plex_ma.networks import ELI_DIM, MAP_PLAN, STOP_INIT_LOGIT, SUBGOAL_MARGIN, Executor, FlatMapPolicy, FlatPolicy, Planner, PriorPlanner
 from plex_ma.trainers.base import build_policies
 from plex_ma.trainers.ppo import RolloutBuffer
 
@@ -394,3 +395,41 @@ def test_cnn_min_resolution_is_the_smallest_image_the_executor_takes():
     RGBDEncoder(CNN_MIN_RESOLUTION, 8)
     with pytest.raises(RuntimeError):
         RGBDEncoder(CNN_MIN_RESOLUTION - 1, 8)
+
+
+@pytest.mark.parametrize("cls", [Planner, PriorPlanner])
+def test_stored_map_plan_gives_the_same_planner_pass(cls):
+    """The trainer stores the value-iteration read-out with each decision (``with_map_plan``):
+    the PPO epochs' pass over it equals the pass that recomputes it, and it is really read."""
+    torch.manual_seed(0)
+    net = cls(value_iteration=True, fine_map=True, subgoal_radius=0.2)
+    gen = torch.Generator().manual_seed(1)
+    obs = net.example_obs(4, gen)
+    obs["ego_map"] = (obs["ego_map"] < 0.2).float()
+    stored = net.with_map_plan(obs)
+    assert stored[MAP_PLAN].shape == (4, net.vin_dim + 2) and net.with_map_plan(stored) is stored
+    act = net.act(stored)
+    args = (act["stop"], act["raw_subgoal"])
+    for a, b in zip(net.evaluate_actions(stored, *args), net.evaluate_actions(obs, *args)):
+        torch.testing.assert_close(a, b)
+    wrong = {**stored, MAP_PLAN: torch.as_tensor(stored[MAP_PLAN]).flip(0)}
+    assert not torch.allclose(net.evaluate_actions(wrong, *args)[0], net.evaluate_actions(obs, *args)[0])
+    assert Planner().with_map_plan(obs) is obs  # no module, nothing to store
+
+
+def test_constant_starts_are_the_same_in_every_state():
+    """The two constant starts docs/spec.md section 6 allows: ``planner_subgoal_forward`` puts
+    the untrained planner's mean sub-goal that far ahead and ``executor_stop_bias`` lowers the
+    untrained executor's STOP logit, both whatever the goal or sub-goal."""
+    torch.manual_seed(0)
+    pl = Planner(subgoal_forward=1.0)
+    obs = pl.example_obs(32)
+    mean = pl(obs)[1].mean
+    torch.testing.assert_close(mean, torch.tensor([1.0, 0.0]).expand(32, 2), atol=0.2, rtol=0)
+    ex = Executor(resolution=40, gru_hidden=16, stop_bias=-3.0)
+    ex_obs = ex.example_obs(5)
+    ex_obs["subgoal"] = torch.tensor([[2.0, 0.0], [2.0, 1.5], [2.0, -1.5], [2.0, 3.0], [0.05, 0.0]])
+    p = torch.softmax(ex(ex_obs, ex.initial_state(5), torch.ones(5, dtype=torch.bool))[0], -1)
+    p_stop = 1 / (1 + 3 * math.exp(3.0))
+    torch.testing.assert_close(p[:, STOP], torch.full((5,), p_stop), atol=0.01, rtol=0)
+    torch.testing.assert_close(p[:, 1:], torch.full((5, 3), (1 - p_stop) / 3), atol=0.02, rtol=0)  # the moves

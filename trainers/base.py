@@ -78,12 +78,13 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
         kw = dict(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max, subgoal_radius=cfg.env.subgoal_radius,
                   init_std=cfg.planner_subgoal_std, value_iteration=cfg.planner_value_iteration,
                   fine_map=cfg.planner_fine_map)
-        planner = PriorPlanner(stop_distance=cfg.env.success_distance, **kw) if cfg.planner_prior else Planner(**kw)
+        planner = (PriorPlanner(stop_distance=cfg.env.success_distance, **kw) if cfg.planner_prior
+                   else Planner(subgoal_forward=cfg.planner_subgoal_forward, **kw))
         return {"planner": planner,
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden,
                                      stop_prior=cfg.executor_stop_prior, heading_prior=cfg.executor_heading_prior,
-                                     no_reversal=cfg.executor_no_reversal)}
+                                     no_reversal=cfg.executor_no_reversal, stop_bias=cfg.executor_stop_bias)}
     flat = dict(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                 gru_hidden=cfg.executor_hidden, no_reversal=cfg.executor_no_reversal)
     if cfg.method == "ppo-gru-map":

@@ -49,13 +49,16 @@ class LearnedPlanner:
         self.net, self.deterministic = net, deterministic
 
     def decide(self, obs: dict, rows: np.ndarray) -> dict:
-        """stop (k,) int64 and subgoal (k, 2) float32 for the env; raw_subgoal, log_prob, value for PPO."""
+        """stop (k,) int64 and subgoal (k, 2) float32 for the env; raw_subgoal, log_prob, value
+        and the observations as acted on (with the stored map read-out) for PPO."""
+        obs = self.net.with_map_plan(obs)  # stored with the decision: the PPO epochs reuse it
         with torch.no_grad():
             out = self.net.act(obs, deterministic=self.deterministic)
         # decisions are few: everything comes back to the CPU, where their transitions wait
         out = {k: v.cpu() for k, v in out.items()}
         return {"stop": out["stop"].numpy().astype(np.int64), "subgoal": out["subgoal"].numpy(),
-                "raw_subgoal": out["raw_subgoal"], "log_prob": out["log_prob"], "value": out["value"]}
+                "raw_subgoal": out["raw_subgoal"], "log_prob": out["log_prob"], "value": out["value"],
+                "obs": obs}
 
 
 class RandomPlanner:

@@ -106,7 +106,7 @@ class PlexTrainer(Trainer):
         self._count_episodes(d.result)
         if self.driver.planner.learns:
             out = d.out
-            self.decisions.decide(d.rows, d.obs, out["stop"], out["raw_subgoal"], out["log_prob"], out["value"])
+            self.decisions.decide(d.rows, out["obs"], out["stop"], out["raw_subgoal"], out["log_prob"], out["value"])
             self._planner_rewards(d.result, executor_step=False)
 
     def _planner_rewards(self, res, executor_step: bool = True) -> None:

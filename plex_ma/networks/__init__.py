@@ -38,7 +38,7 @@ from plex_ma.networks.common import encode_polar, layer_init
 from plex_ma.networks.executor import EXECUTOR_STOP_SLOPE, Executor, ExecutorAct, RGBDEncoder
 from plex_ma.networks.flat import FlatMapPolicy, FlatPolicy
 from plex_ma.networks.memory import GRUMemory, MultiHeadAttention, SMTMemory
-from plex_ma.networks.planner import (GOAL_FEATURES, OFFSET_FULL_DISTANCE, OFFSET_ZERO_DISTANCE, PI32,
+from plex_ma.networks.planner import (GOAL_FEATURES, MAP_PLAN, OFFSET_FULL_DISTANCE, OFFSET_ZERO_DISTANCE, PI32,
                                       PLAN_FEATURES, STOP_INIT_LOGIT, STOP_PRIOR_MARGIN, STOP_PRIOR_SLOPE,
                                       SUBGOAL_MARGIN, Head, MapEncoder, Planner, PlannerAct, PriorPlanner,
                                       plan_features, planner_goal_features)
@@ -50,7 +50,7 @@ __all__ = [
     "EXECUTOR_STOP_SLOPE", "Executor", "ExecutorAct", "RGBDEncoder",
     "FlatMapPolicy", "FlatPolicy",
     "GRUMemory", "MultiHeadAttention", "SMTMemory",
-    "GOAL_FEATURES", "OFFSET_FULL_DISTANCE", "OFFSET_ZERO_DISTANCE", "PI32", "PLAN_FEATURES", "STOP_PRIOR_MARGIN",
+    "GOAL_FEATURES", "MAP_PLAN", "OFFSET_FULL_DISTANCE", "OFFSET_ZERO_DISTANCE", "PI32", "PLAN_FEATURES", "STOP_PRIOR_MARGIN",
     "STOP_INIT_LOGIT", "STOP_PRIOR_SLOPE", "SUBGOAL_MARGIN", "Head", "MapEncoder", "Planner", "PlannerAct",
     "PriorPlanner",
     "plan_features", "planner_goal_features",

@@ -92,8 +92,10 @@ class Executor(nn.Module):
     def __init__(self, memory: str = "gru", resolution: int = 128, eli_dim: int = ELI_DIM,
                  smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512,
                  stop_prior: float | None = None, extra_inputs: int = 0, heading_prior: float | None = None,
-                 no_reversal: bool = False):
-        """``extra_inputs``: features a subclass's ``_inputs`` adds to the memory's input
+                 no_reversal: bool = False, stop_bias: float = 0.0):
+        """``stop_bias``: a constant added to the actor's STOP bias at initialisation (the same
+        in every state), which sets how long an untrained executor's turns last.
+        ``extra_inputs``: features a subclass's ``_inputs`` adds to the memory's input
         beside the image's and the goal's (:class:`FlatMapPolicy`'s map features).
         ``heading_prior`` (logits, or None): the actor's goal inputs start
         at MOVE_FORWARD += k cos(direction), TURN_LEFT += k sin, TURN_RIGHT -= k sin, so an
@@ -116,6 +118,8 @@ class Executor(nn.Module):
         head_in = eli_dim + 3
         self.actor = layer_init(nn.Linear(head_in, NUM_ACTIONS), std=0.01)
         self.critic = layer_init(nn.Linear(head_in, 1), std=1.0)
+        with torch.no_grad():
+            self.actor.bias[STOP] += stop_bias
         if heading_prior is not None:
             with torch.no_grad():  # goal inputs: (distance, cos, sin) after the eli_dim ELI features
                 self.actor.weight[MOVE_FORWARD, eli_dim + 1] += heading_prior

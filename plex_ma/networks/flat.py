@@ -9,9 +9,7 @@ import torch
 from plex_ma.envs.spaces import EGO_CHANNELS, EGO_SIZE
 from plex_ma.networks.common import as_tensor
 from plex_ma.networks.executor import Executor
-from plex_ma.networks.planner import MapEncoder
-
-MAP_PLAN = "map_plan"  # the observation key of the value-iteration read-out (FlatMapPolicy.with_map_plan)
+from plex_ma.networks.planner import MAP_PLAN, MapEncoder
 
 
 class FlatPolicy(Executor):
@@ -59,11 +57,10 @@ class FlatMapPolicy(FlatPolicy):
 
     def with_map_plan(self, obs: dict) -> dict:
         """``obs`` and, with the value-iteration module, its read-out under ``MAP_PLAN`` (a
-        numpy array (B, vin_dim)): the same numbers that :meth:`_inputs` would compute."""
+        numpy array (B, vin_dim + 2), :meth:`MapEncoder.map_plan`)."""
         if self.map.vin is None:
             return obs
-        feats, _ = self.map.vin(*self._map_inputs(obs))
-        return {**obs, MAP_PLAN: feats.cpu().numpy()}
+        return {**obs, MAP_PLAN: self.map.map_plan(*self._map_inputs(obs)).cpu().numpy()}
 
     def _map_inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
         """The ego maps (B, C, S, S) and point goals (B, 2) of observations with any leading dims."""
@@ -73,9 +70,9 @@ class FlatMapPolicy(FlatPolicy):
 
     def _inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
         x, goal = super()._inputs(obs)
-        vin = obs.get(MAP_PLAN)
-        vin = None if vin is None else as_tensor(vin, self.device, torch.float32).reshape(-1, self.map.vin_dim)
-        feat = self.map(*self._map_inputs(obs), vin)
+        plan = obs.get(MAP_PLAN)
+        plan = None if plan is None else as_tensor(plan, self.device, torch.float32).reshape(-1, self.map.vin_dim + 2)
+        feat = self.map(*self._map_inputs(obs), plan)
         return torch.cat([x, feat.view(*x.shape[:-1], -1)], dim=-1), goal
 
     def example_obs(self, batch: int = 1, generator: torch.Generator | None = None) -> dict:

@@ -25,6 +25,7 @@ PI32 = float(np.nextafter(np.float32(np.pi), np.float32(0)))
 GOAL_FEATURES = 5  # planner_goal_features' width
 PLAN_FEATURES = 4  # plan_features' width
 SUBGOAL_MARGIN = 0.05  # m: sub-goals lie at least this far beyond the executor's sub-goal radius
+MAP_PLAN = "map_plan"  # observation key of a stored value-iteration read-out (MapEncoder.map_plan)
 STOP_INIT_LOGIT = -3.0  # Planner's constant starting stop bias: p(stop) ~0.05 in every state
 # PriorPlanner's hand-set terms (the old recipe, which docs/spec.md section 6 bars from the defaults):
 STOP_PRIOR_MARGIN = 0.005  # m: its untrained p(stop) is 0.5 this far inside the success distance
@@ -104,27 +105,34 @@ class MapEncoder(nn.Module):
         self.vin = ValueIteration(fine=fine_map) if value_iteration else None
         self.vin_dim = self.vin.out_dim if self.vin is not None else 0
 
-    def read_map(self, ego: torch.Tensor, goal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None,
-                                                                          torch.Tensor | None]:
+    def map_plan(self, ego: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+        """The value-iteration read-out (B, vin_dim + 2): its features and its sub-goal
+        (distance m, direction rad). It has no parameters, so the rollouts store it with each
+        observation (under ``MAP_PLAN``) and the PPO epochs reuse it."""
+        feats, subgoal = self.vin(ego, goal)
+        return torch.cat([feats, subgoal], dim=1)
+
+    def read_map(self, ego: torch.Tensor, goal: torch.Tensor, plan: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """ego (B, C, S, S), goal (B, 2) = (distance m, direction rad) -> the trunk's features
         (B, map_dim), the value-iteration features (B, vin_dim) and its sub-goal (B, 2) =
-        (distance m, direction rad) (both None without the module)."""
+        (distance m, direction rad) (both None without the module). ``plan``, where given, is
+        :meth:`map_plan`'s read-out computed beforehand."""
         trunk = self.trunk(ego)
         if self.vin is None:
             return trunk, None, None
-        return trunk, *self.vin(ego, goal)
+        if plan is None:
+            plan = self.map_plan(ego, goal)
+        return trunk, plan[:, :self.vin_dim], plan[:, self.vin_dim:]
 
     def trunk(self, ego: torch.Tensor) -> torch.Tensor:
         """ego (B, C, S, S) -> the trunk's features (B, map_dim), from the map's first ``ego_channels`` channels."""
         return self.convs(ego[:, :self.convs[0].in_channels])
 
-    def forward(self, ego: torch.Tensor, goal: torch.Tensor, vin: torch.Tensor | None = None) -> torch.Tensor:
-        """(B, map_dim + vin_dim): the trunk's and the value-iteration module's features;
-        ``vin`` (B, vin_dim), where given, is the module's read-out computed beforehand."""
-        if vin is None:
-            trunk, vin, _ = self.read_map(ego, goal)
-        else:
-            trunk = self.trunk(ego)
+    def forward(self, ego: torch.Tensor, goal: torch.Tensor, plan: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, map_dim + vin_dim): the trunk's and the value-iteration module's features
+        (``plan`` as in :meth:`read_map`)."""
+        trunk, vin, _ = self.read_map(ego, goal, plan)
         return trunk if vin is None else torch.cat([trunk, vin], dim=1)
 
 
@@ -161,7 +169,8 @@ class Planner(MapEncoder):
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
                  map_size: int = 32, init_std: float = 0.5, head_hidden: int = 256,
-                 value_iteration: bool = False, subgoal_radius: float | None = None, fine_map: bool = False):
+                 value_iteration: bool = False, subgoal_radius: float | None = None, fine_map: bool = False,
+                 subgoal_forward: float = 0.0):
         # ``convs`` and ``vin`` (the map reading) keep their names: checkpoints key on them
         super().__init__(ego_channels, channels, map_size, value_iteration, fine_map)
         self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
@@ -170,6 +179,9 @@ class Planner(MapEncoder):
         self.fc = nn.Sequential(layer_init(nn.Linear(self.map_dim + eli_dim + GOAL_FEATURES + self.vin_dim, hidden)),
                                 nn.ReLU())
         self._build_heads(hidden + GOAL_FEATURES + PLAN_FEATURES, head_hidden)
+        if subgoal_forward:  # a constant start of the sub-goal mean, this far ahead in every state
+            with torch.no_grad():
+                self.subgoal_mean.linear.bias[0] += subgoal_forward
         self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
 
     def _build_heads(self, feat: int, head_hidden: int) -> None:
@@ -179,8 +191,10 @@ class Planner(MapEncoder):
         self.subgoal_mean = Head(feat, head_hidden, 2, 0.01)
         self.critic = Head(feat, head_hidden, 1, 1.0)
 
-    def features(self, obs: dict) -> torch.Tensor:
-        """(B, hidden + GOAL_FEATURES + PLAN_FEATURES): what the heads read."""
+    def encode(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The trunk: (FC output (B, hidden), goal features (B, GOAL_FEATURES), the raw goal
+        (B, 2), the value-iteration sub-goal (B, 2) or None). A stored read-out under
+        ``MAP_PLAN`` replaces the module's (:meth:`MapEncoder.map_plan`)."""
         dev = self.convs[0].weight.device
         ego = as_tensor(obs["ego_map"], dev, torch.float32)
         raw_goal = as_tensor(obs["goal"], dev, torch.float32)
@@ -191,9 +205,15 @@ class Planner(MapEncoder):
             eli = as_tensor(obs["eli"], dev, torch.float32).detach()
         else:
             eli = torch.zeros(ego.shape[0], self.eli_dim, device=dev)
-        trunk, vin_features, vin_subgoal = self.read_map(ego, raw_goal)
+        plan = obs.get(MAP_PLAN)
+        plan = None if plan is None else as_tensor(plan, dev, torch.float32)
+        trunk, vin_features, vin_subgoal = self.read_map(ego, raw_goal, plan)
         parts = [trunk, eli, goal] + ([vin_features] if vin_features is not None else [])
-        h = self.fc(torch.cat(parts, dim=1))
+        return self.fc(torch.cat(parts, dim=1)), goal, raw_goal, vin_subgoal
+
+    def features(self, obs: dict) -> torch.Tensor:
+        """(B, hidden + GOAL_FEATURES + PLAN_FEATURES): what the heads read."""
+        h, goal, raw_goal, vin_subgoal = self.encode(obs)
         return torch.cat([h, goal, plan_features(raw_goal, vin_subgoal)], dim=1)
 
     def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
@@ -220,6 +240,16 @@ class Planner(MapEncoder):
         rho = torch.hypot(subgoal[..., 0], subgoal[..., 1]).clamp(self.min_subgoal_distance, self.rho_max)
         theta = torch.atan2(subgoal[..., 1], subgoal[..., 0]).clamp(-PI32, PI32)
         return torch.stack([rho, theta], dim=-1)
+
+    @torch.no_grad()
+    def with_map_plan(self, obs: dict) -> dict:
+        """``obs`` and, with the value-iteration module, its read-out under ``MAP_PLAN`` (a
+        numpy array (B, vin_dim + 2)): what the trainer stores with each decision."""
+        if self.vin is None or MAP_PLAN in obs:
+            return obs
+        dev = self.convs[0].weight.device
+        plan = self.map_plan(as_tensor(obs["ego_map"], dev, torch.float32), as_tensor(obs["goal"], dev, torch.float32))
+        return {**obs, MAP_PLAN: plan.cpu().numpy()}
 
     @torch.no_grad()
     def act(self, obs: dict, deterministic: bool = False) -> PlannerAct:
@@ -312,18 +342,7 @@ class PriorPlanner(Planner):
     def features(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(B, hidden + GOAL_FEATURES): the trunk's output and the goal features; and the
         value-iteration module's sub-goal (B, 2) (None without the module)."""
-        dev = self.convs[0].weight.device
-        ego = as_tensor(obs["ego_map"], dev, torch.float32)
-        goal = planner_goal_features(as_tensor(obs["goal"], dev, torch.float32))
-        if self.use_eli:
-            # Stop-gradient (paper 3, SPEC 5): the planner's loss must never reach the
-            # executor's parameters, so the ELI always enters the planner detached.
-            eli = as_tensor(obs["eli"], dev, torch.float32).detach()
-        else:
-            eli = torch.zeros(ego.shape[0], self.eli_dim, device=dev)
-        trunk, vin_features, vin_subgoal = self.read_map(ego, as_tensor(obs["goal"], dev, torch.float32))
-        parts = [trunk, eli, goal] + ([vin_features] if vin_features is not None else [])
-        h = self.fc(torch.cat(parts, dim=1))
+        h, goal, _, vin_subgoal = self.encode(obs)
         return torch.cat([h, goal], dim=1), vin_subgoal
 
     def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
