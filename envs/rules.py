@@ -36,7 +36,7 @@ from .actions import InvalidAction, discrete, real
 from .sim import BatchedSim, Episode, Geodesics, SceneBank, scene_bank
 from .sim.core import (ACTION_NAMES, NUM_ACTIONS, POSE_NOISE_RULE, RESOLUTION_RULE, STOP, check_pose_noise,
                         check_resolution)
-from .sim.episodes import EpisodeFileError, default_episode_file, load_episodes, sample_episode
+from .sim.episodes import MAX_GEODESIC, EpisodeFileError, default_episode_file, load_episodes, sample_episode
 
 PLANNER, EXECUTOR = 0, 1
 ELI_DIM = 128
@@ -206,6 +206,8 @@ class _Worlds:
         self.sim = BatchedSim(self.bank, self.n, resolution=cfg.resolution, pose_noise=cfg.pose_noise, egomap=egomap)
         self.geo = Geodesics(self.bank)
         self._next_fixed = 0
+        # sampled episodes' largest start-goal geodesic distance (m); a training curriculum lowers it
+        self.max_geodesic = MAX_GEODESIC
         self.steps = np.zeros(self.n, np.int64)
         self.collisions = np.zeros(self.n, np.int64)
         self.done = np.ones(self.n, np.bool_)
@@ -225,7 +227,8 @@ class _Worlds:
             self._next_fixed += 1
             return ep, None
         rng = self.rngs[i]
-        return sample_episode(self.bank, int(rng.integers(len(self.bank))), rng, self.geo)
+        return sample_episode(self.bank, int(rng.integers(len(self.bank))), rng, self.geo,
+                              max_geodesic=self.max_geodesic)
 
     @_serial_for_one_world
     def reset_rows(self, rows, episodes: list[Episode] | None = None) -> None:

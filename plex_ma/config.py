@@ -28,6 +28,7 @@ CNN_MIN_RESOLUTION = 36
 # Where the trainer's env defaults differ from the env's own (the env's are the paper's, docs/spec.md).
 TRAIN_ENV = {"resolution": 48, "n_ex": 30, "subgoal_radius": 0.2, "executor_stop_penalty": -0.5,
              "executor_collision_reward": -0.15}
+CURRICULUM_START_DISTANCE = 2.5  # m: the training episodes' largest geodesic distance at step 0 of a curriculum
 Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt", "ppo-gru-map"]
 Preset = Literal["smoke", "cpu", "paper"]
 # --device of the CLIs that load networks (evaluate, record, bench train; train has the field below)
@@ -66,6 +67,8 @@ class TrainConfig:
     """PLEX only: the planner's Adam learning rate (None: --lr)"""
     planner_subgoal_std: float = 0.25
     """PLEX only: the starting standard deviation of the planner's sampled sub-goal (rho in m, theta in rad)"""
+    curriculum_steps: int = 0
+    """sampled training episodes' largest start-goal geodesic distance grows linearly from CURRICULUM_START_DISTANCE (2.5 m) to Habitat's 30 m over this many steps (0: no curriculum)"""
     anneal_lr: bool = True
     """decay every learning rate linearly to zero at --total-steps (CleanRL's anneal_lr)"""
     rollout_steps: int = 32
@@ -229,6 +232,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         need(0.0 <= getattr(cfg, g) <= 1.0, g, "must be in [0, 1]")
     need(cfg.planner_step_gamma is None or 0.0 < cfg.planner_step_gamma <= 1.0, "planner_step_gamma", "must be in (0, 1]")
     need(cfg.ppo_epochs >= 1, "ppo_epochs", "must be >= 1")
+    need(cfg.curriculum_steps >= 0, "curriculum_steps", "must be >= 0")
     need(1 <= cfg.num_minibatches <= cfg.num_envs, "num_minibatches", "must be in [1, num_envs]")
     need(cfg.clip > 0, "clip", "must be positive")
     need(cfg.max_grad_norm > 0, "max_grad_norm", "must be positive")
@@ -244,6 +248,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
          "must be in (0, 2] metres")
     need(cfg.executor_heading_prior is None or 0 < cfg.executor_heading_prior <= 20, "executor_heading_prior",
          "must be in (0, 20] logits")
+    need(-20 <= cfg.executor_stop_bias <= 20, "executor_stop_bias", "must be in [-20, 20] logits")
+    need(0 <= cfg.planner_subgoal_forward <= cfg.env.rho_max, "planner_subgoal_forward", "must be in [0, rho_max] metres")
     need(0.5 < cfg.random_subgoal_distance <= cfg.env.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")
     need(cfg.device in ("auto", "cpu", "cuda") or cfg.device.startswith("cuda:"), "device",

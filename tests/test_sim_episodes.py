@@ -167,3 +167,14 @@ def test_a_good_file_loads(tmp_path):
     path.write_bytes(_gz({"version": 1, "episodes": [_record(), dict(_record(), episode_id=1)]}))
     eps = load_episodes(path)
     assert len(eps) == 2 and eps[0].goal_position == (3.0, 4.0) and eps[1].episode_id == 1
+
+
+def test_max_geodesic_bounds_sampled_episodes():
+    """A curriculum's bound (``max_geodesic``) holds every sampled episode within it."""
+    from plex_ma.envs.sim.episodes import sample_episode
+    bank, _ = bank_and_episodes()
+    geo, rng = Geodesics(bank), np.random.default_rng(0)
+    short = [sample_episode(bank, s % len(bank), rng, geo, max_geodesic=2.5)[0].geodesic_distance for s in range(40)]
+    assert all(1.0 <= d <= 2.5 for d in short)
+    full = [sample_episode(bank, s % len(bank), rng, geo)[0].geodesic_distance for s in range(40)]
+    assert max(full) > 5.0

@@ -502,3 +502,22 @@ def test_torch_threads_hold_after_the_simulator_starts(tmp_path):
                          env={**os.environ, "NUMBA_NUM_THREADS": "2", "OMP_NUM_THREADS": "2"})
     assert out.returncode == 0, out.stderr[-2000:]
     assert "threads 1" in out.stdout, out.stdout
+
+
+@pytest.mark.parametrize("method", ["plex-gru", "ppo-gru"])
+def test_curriculum_grows_the_episodes_distance(tmp_path, method):
+    """--curriculum-steps: before each update the training worlds' largest episode distance
+    is curriculum_distance(step), 2.5 m at step 0 rising linearly to 30 m; the episodes
+    sampled then respect it."""
+    from plex_ma.trainers.base import curriculum_distance
+    assert curriculum_distance(0, 100) == 2.5 and curriculum_distance(50, 100) == 16.25
+    assert curriculum_distance(100, 100) == curriculum_distance(500, 100) == 30.0
+    cfg = tiny(tmp_path, method=method, curriculum_steps=10_000)
+    t = make_trainer(cfg)
+    t._loop_start()
+    assert t.env.worlds.max_geodesic == 2.5
+    t.env.worlds.reset_rows(np.arange(cfg.num_envs))
+    assert all(t.env.worlds.info(i)["geodesic_distance"] <= 2.5 for i in range(cfg.num_envs))
+    t.train()
+    assert t.env.worlds.max_geodesic == pytest.approx(curriculum_distance(t.step, 10_000))
+    t.close()

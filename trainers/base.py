@@ -20,8 +20,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from plex_ma.config import TrainConfig, from_dict, setting
+from plex_ma.config import CURRICULUM_START_DISTANCE, TrainConfig, from_dict, setting
 from plex_ma.envs.rules import NavConfig
+from plex_ma.envs.sim.episodes import MAX_GEODESIC
 from plex_ma.networks import Executor, FlatMapPolicy, FlatPolicy, Planner, PriorPlanner
 
 from . import distributed
@@ -67,6 +68,15 @@ def env_kwargs(cfg: TrainConfig, split: str | None = None) -> dict:
     if split is not None and split != cfg.env.split:
         kw |= {"split": split, "num_scenes": None, "episodes_file": None}
     return kw
+
+
+def curriculum_distance(step: int, curriculum_steps: int) -> float:
+    """The largest start-goal geodesic distance (m) of the training episodes sampled at
+    ``step``: CURRICULUM_START_DISTANCE at step 0, growing linearly to Habitat's
+    MAX_GEODESIC at ``curriculum_steps``. Short episodes first give the planner's stop
+    (which only succeeds within 0.2 m of the goal) outcomes to learn from."""
+    frac = min(step / curriculum_steps, 1.0)
+    return CURRICULUM_START_DISTANCE + frac * (MAX_GEODESIC - CURRICULUM_START_DISTANCE)
 
 
 def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
@@ -278,8 +288,12 @@ class Trainer:
         return RunClock(self._progress(), time.perf_counter(), self.step)
 
     def _anneal(self) -> None:
-        """With ``anneal_lr``, each optimiser's learning rate falls linearly from its base
-        value at step 0 to zero at ``total_steps`` (CleanRL's schedule), set before every update."""
+        """Set before every rollout and update: with ``anneal_lr``, each optimiser's learning
+        rate falls linearly from its base value at step 0 to zero at ``total_steps`` (CleanRL's
+        schedule); with ``curriculum_steps``, the training worlds' largest episode distance
+        (:func:`curriculum_distance`)."""
+        if self.cfg.curriculum_steps:
+            self.env.worlds.max_geodesic = curriculum_distance(self.step, self.cfg.curriculum_steps)
         if self.cfg.anneal_lr:
             frac = max(1.0 - self.step / self.cfg.total_steps, 0.0) if self.cfg.total_steps else 1.0
             for k, o in self.opts.items():

@@ -142,8 +142,9 @@ class Geodesics:
 
 
 def sample_episode(bank: SceneBank, s: int, rng: np.random.Generator, geo: Geodesics, episode_id: int = 0,
-                   max_goals: int = 200) -> tuple[Episode, np.ndarray]:
-    """Sample one episode in scene ``s`` by Habitat's rules. Returns it and its goal field."""
+                   max_goals: int = 200, max_geodesic: float = MAX_GEODESIC) -> tuple[Episode, np.ndarray]:
+    """Sample one episode in scene ``s`` by Habitat's rules (its start-goal geodesic
+    distance in [MIN_GEODESIC, ``max_geodesic``]). Returns it and its goal field."""
     grid = bank.grids[s]
     nav_cells, centres = geo.navigable_cells(s)
     for _ in range(max_goals):
@@ -151,7 +152,7 @@ def sample_episode(bank: SceneBank, s: int, rng: np.random.Generator, geo: Geode
         goal = _cell_point(grid, gc, rng)
         field = geo.field(s, goal)
         d = field[nav_cells].astype(np.float64)
-        ok = (d >= MIN_GEODESIC) & (d <= MAX_GEODESIC)
+        ok = (d >= MIN_GEODESIC) & (d <= max_geodesic)
         if not np.any(ok):
             continue
         # Habitat draws a start uniformly and keeps it with probability
@@ -165,7 +166,7 @@ def sample_episode(bank: SceneBank, s: int, rng: np.random.Generator, geo: Geode
             sc = cand[rng.choice(len(cand), p=weight / weight.sum())]
             start = _cell_point(grid, sc, rng)
             dist = geo.lookup(s, field, start)
-            if not (MIN_GEODESIC <= dist <= MAX_GEODESIC):
+            if not (MIN_GEODESIC <= dist <= max_geodesic):
                 continue
             heading = float(rng.uniform(-math.pi, math.pi))
             ep = Episode(episode_id, grid.scene_id, (float(start[0]), float(start[1])), heading,
