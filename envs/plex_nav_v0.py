@@ -137,7 +137,14 @@ every SuperSuit wrapper and what it does here.
   episodes are unchanged, so results stay comparable and the name stays `plex_nav_v0`.
 """
 
-from .compat import compat_env
+from .compat import compat_env, compat_parallel_env
+from .parallel import TurnParallelEnv
 from .plex_nav import AGENTS, env, raw_env
 
-__all__ = ["AGENTS", "compat_env", "env", "raw_env"]
+
+def parallel_env(**kwargs) -> TurnParallelEnv:
+    """``env(**kwargs)`` as the turn-based Parallel env (see "Parallel API" above)."""
+    return TurnParallelEnv(env(**kwargs))
+
+
+__all__ = ["AGENTS", "compat_env", "compat_parallel_env", "env", "parallel_env", "raw_env"]
