@@ -1,4 +1,5 @@
-"""The recipes of docs/trainers.md for Stable-Baselines3, skrl and RLlib: each example runs
+"""The recipes of docs/trainers.md for Stable-Baselines3, skrl (with and without the ELI),
+RLlib and the generic Parallel-API IPPO loop: each example runs
 a few hundred steps where its library is installed, and is skipped otherwise. The test
 extras install Stable-Baselines3 and skrl (they keep the pinned torch); RLlib is not in
 them (ray pins its own gymnasium), so its test runs only where a user installed it."""
@@ -42,6 +43,20 @@ def test_skrl_ippo_through_the_turn_based_conversion(capsys):
     out = example.main(["--timesteps", "300", "--rollouts", "64", "--num-scenes", "2", "--max-steps", "30"])
     assert out["updates"] == 4 and out["episodes"] >= 2  # masked actions only: an unmasked one would raise
     assert "IPPO updates per agent" in capsys.readouterr().out
+
+
+def test_skrl_ippo_trains_the_executor_with_the_eli(capsys):
+    pytest.importorskip("skrl", minversion="2.0")
+    import torch
+
+    example = load_example("train_skrl")
+    out = example.main(["--timesteps", "300", "--rollouts", "64", "--num-scenes", "2", "--max-steps", "30", "--eli"])
+    executor = out["agent"].policies["executor"]
+    assert type(executor).__name__ == "EliPolicy" and out["updates"] == 4
+    # the ELI's own parameters were trained (they start at log std -1), and the planner saw the messages
+    assert not torch.allclose(executor.eli_log_std, torch.full((128,), -1.0))
+    assert len(out["eli"]) > 100 and sum(out["eli"]) / len(out["eli"]) > 0.1
+    assert "mean |ELI| seen by the planner" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("view", ["env", "compat_env"])
