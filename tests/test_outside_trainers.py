@@ -67,3 +67,25 @@ def test_rllib_multi_agent_ppo(capsys, view):
                         "--max-steps", "30"])
     assert out["iterations"] == 2 and out["env_steps"] >= 400
     assert "iteration 2" in capsys.readouterr().out
+
+
+def test_parallel_ippo_trains_compat_env_for_4096_steps(capsys):
+    """The generic Parallel-API loop (masks from infos, each agent's own Discrete space)
+    trains compat_parallel_env for 4,096 steps with constructor options as its only glue."""
+    import torch
+
+    example = load_example("train_ippo_parallel")
+    torch.manual_seed(0)
+    before = {a: [p.clone() for p in m.parameters()] for a, m in
+              {"planner": example.Agent(6148, 33), "executor": example.Agent(4 * 16 * 16 + 4, 4)}.items()}
+    out = example.main(["--total-steps", "4096", "--resolution", "32", "--image-size", "16", "--num-scenes", "2",
+                        "--max-steps", "60"])
+    assert out["steps"] == 4096 and len(out["lines"]) == 8 and out["episodes"] >= 20
+    for a, model in out["agents"].items():
+        # each agent has its own space: the planner's 33 sub-goal/stop choices, the executor's 4 moves
+        assert model.actor[-1].out_features == {"planner": 33, "executor": 4}[a]
+        assert any(not torch.equal(p, q) for p, q in zip(model.parameters(), before[a]))  # it was updated
+        # keeping only the acting agent's transitions drops no reward: every one was credited
+        assert abs(out["kept_total"][a] - out["raw_total"][a]) < 1e-6 * max(1.0, abs(out["raw_total"][a]))
+    assert out["raw_total"]["planner"] != 0
+    assert "transitions kept planner" in capsys.readouterr().out
