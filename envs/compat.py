@@ -2,34 +2,50 @@
 
 ```python
 from plex_ma.envs import plex_nav_v0
-env = plex_nav_v0.compat_env(resolution=64)   # any plex_nav_v0 argument except eli=True
+env = plex_nav_v0.compat_env(resolution=64)              # each agent its own spaces, mask in the observation
+env = plex_nav_v0.compat_env(pad=True, mask="info")      # one padded layout for both, mask in infos
 ```
 
-Generic PettingZoo trainers (Tianshou's ``PettingZooEnv``, SuperSuit's vector envs, most
-tutorials) want one flat ``Box`` observation, one ``Discrete`` action space and the same
-spaces for every agent. This view gives them that, built from SuperSuit's wrappers plus
-one small wrapper of ours for the action mask:
+Generic PettingZoo trainers want ``Box`` or ``Discrete`` spaces, not the native env's
+mixed ``Dict`` actions (a stop flag with a continuous sub-goal). This view gives the
+planner a ``Discrete`` choice of sub-goals and offers the rest in the layout a trainer
+asks for, through its options; ``compat_parallel_env()`` (same arguments) is its
+turn-based Parallel view (``plex_nav_v0``'s "Parallel API").
 
 | | |
 |---|---|
 | Agents | `["planner", "executor"]`, same turn order, rewards and infos as `plex_nav_v0` |
-| Observation (both agents) | `Dict(observation=Box(float32, (L,)), action_mask=Box(0, 1, (K,), int8))` |
-| Action (both agents) | `Discrete(K)`, `K = 1 + len(subgoal_distances) * subgoal_directions` (33 by default) |
+| Planner action | `Discrete(K)`, `K = 1 + len(subgoal_distances) * subgoal_directions` (33 by default) |
+| Executor action | `Discrete(4)`; with `eli=True` `Dict(action=Discrete(4), eli=Box(128))`; with `pad=True` `Discrete(K)` |
+| Observation | `flatten=True`: one float32 vector each (planner 6,148, executor 4,100 by default); `flatten=False`: the native Dicts; `pad=True`: both zero-padded to one length |
+| Mask | `mask="obs"`: `Dict(observation=..., action_mask=Box(0, 1, (n,), int8))`; `"info"`: `infos[agent]["action_mask"]`; `"none"`: no mask |
 
-**observation** (float32, the same length L for both agents; 6,148 by default): a one-hot
-agent id (`[1, 0]` planner, `[0, 1]` executor), then the agent's own features, then zero
-padding up to L:
+| option | default | meaning |
+|---|---|---|
+| `mask` | `"obs"` | where each agent's action mask goes: `"obs"` (PettingZoo's convention), `"info"`, `"none"` |
+| `pad` | False | True: one observation Box and one `Discrete(K)` for both agents, the executor's 4..K-1 masked (for trainers that need identical spaces, e.g. Tianshou); needs `flatten=True`, `eli=False` and a mask |
+| `flatten` | True | False: the native Dict observations, images whole for a CNN (`image_size` unused) |
+| `eli` | False | True: the executor's action carries the 128-float ELI and the planner's observation holds the last one; needs `mask="none"` (gymnasium samples a Dict action with a dict of masks, and nothing is masked without `pad`) |
+| `image_size` | 32 | side of the executor's downsampled RGB-D in the flat vector |
+| `subgoal_distances`, `subgoal_directions` | `rho_max * (1, 2, 3, 4) / 4`, 8 | the planner's sub-goal grid |
+
+Every other argument is ``plex_nav_v0.env``'s. A bad option raises one ``ValueError``
+naming it.
+
+**observation** (``flatten=True``, float32): a one-hot agent id (`[1, 0]` planner, `[0, 1]`
+executor), then the agent's own features (then zero padding with ``pad=True``):
 
 * planner: the ego map flattened in (channel, row, column) order (6 x 32 x 32 in [0, 1]),
-  then the goal vector (distance m, direction rad). The ELI is not included: it is off here.
+  then the goal vector (distance m, direction rad), then with ``eli=True`` the ELI its
+  executor sent last (128 values).
 * executor: RGB scaled to [0, 1] and depth, downsampled to `image_size` x `image_size`
   (block mean when the resolution is a multiple of it, nearest pixel otherwise) and
   flattened channel-first (R, G, B, depth planes), then the sub-goal vector (distance m,
   direction rad). Reshape `obs[2:2 + 4 * S * S]` to `(4, S, S)` to get the image back.
 
-**action_mask** (int8, length K): 1 for the actions of the agent that observes it. It is
-the same for every step of an agent: the planner may use all K actions, the executor the
-first 4.
+**action_mask** (int8, one entry per Discrete action of the agent): 1 for the actions the
+agent may use. It is the same for every step of an agent: all ones, except with
+``pad=True``, where the executor may use only the first 4 of K.
 
 **actions**:
 
@@ -37,12 +53,12 @@ first 4.
   distance `subgoal_distances[i]` (default `rho_max * (1, 2, 3, 4) / 4` = 1, 2, 3, 4 m) in
   direction `2 pi j / subgoal_directions`, wrapped to [-pi, pi) (default 8 directions, 0 =
   straight ahead, counter-clockwise).
-* executor: `0` STOP, `1` MOVE_FORWARD, `2` TURN_LEFT, `3` TURN_RIGHT. It sends a zero ELI
-  with every action: the ELI channel is off (`eli=False`), because a Discrete action
-  cannot carry a 128-float message. Passing `eli=True` is an error.
+* executor: `0` STOP, `1` MOVE_FORWARD, `2` TURN_LEFT, `3` TURN_RIGHT, sending a zero ELI
+  (the channel is off, ``eli=False``); with ``eli=True`` the native
+  ``{"action": move, "eli": 128 floats}``, which the native env checks.
 
-An action outside `0..K-1`, one that the mask forbids (an executor action above 3), a
-non-integer, or a step after the episode ended raises
+An action outside the agent's range, one that the mask forbids (an executor action above
+3 with ``pad=True``), a non-integer, or a step after the episode ended raises
 :class:`~plex_ma.envs.actions.InvalidAction` naming the problem; nothing is changed.
 
 `compat_env()` pickles (it rebuilds from its arguments, like ``EzPickle``).
@@ -52,17 +68,18 @@ non-integer, or a step after the episode ended raises
 From the inside out:
 
 1. ``plex_nav_v0.env(eli=False, ...)``: the native env with order enforcing.
-2. ``supersuit.observation_lambda_v0``: each agent's Dict observation to its flat vector
-   with the one-hot id in front (``agent_indicator_v0`` is not used: it appends the id at
-   the end, scaled to the space's largest bound, here the 100 m goal distance).
-3. ``supersuit.pad_observations_v0``: zero-pads the shorter vector (the executor's, by default) to the longer one's length.
+2. ``supersuit.observation_lambda_v0`` (``flatten=True``): each agent's Dict observation
+   to its flat vector with the one-hot id in front (``agent_indicator_v0`` is not used: it
+   appends the id at the end, scaled to the space's largest bound, the 100 m goal distance).
+3. ``supersuit.pad_observations_v0`` (``pad=True``): zero-pads the shorter vector (the
+   executor's, by default) to the longer one's length.
 4. ``supersuit.action_lambda_v1``: the Discrete choices to the native Dict actions
-   (planner ``Discrete(K)``, executor ``Discrete(4)``).
-5. ``supersuit.pad_action_space_v0``: both to ``Discrete(K)``. (On its own it would
-   silently map an executor action above 3 to 0, STOP.)
-6. :class:`CompatEnv` (ours), the env the user gets: adds ``action_mask`` and checks
-   every action against it before it reaches step 5, since SuperSuit has no action-mask
-   wrapper. It is an AEC env of its own, not a wrapper: ``env.unwrapped`` is the compat
+   (planner ``Discrete(K)``, executor ``Discrete(4)``, or its native Dict with ``eli=True``).
+5. ``supersuit.pad_action_space_v0`` (``pad=True``): both to ``Discrete(K)``. (On its own
+   it would silently map an executor action above 3 to 0, STOP.)
+6. :class:`CompatEnv` (ours), the env the user gets: puts the mask where ``mask`` says and
+   checks every Discrete action against it before it reaches step 5, since SuperSuit has
+   no action-mask wrapper. It is an AEC env of its own, not a wrapper: ``env.unwrapped`` is the compat
    env itself, so every way of asking for the spaces (``observation_space(agent)``,
    ``action_space(agent)``, the ``observation_spaces`` / ``action_spaces`` dicts, the
    same on ``unwrapped``) gives the compat spaces, which trainers that read
@@ -84,7 +101,7 @@ but which was written for round-robin games: when the executor's turn ends durin
 skip it also replays the planner's previous action.
 
 On ``compat_env()`` the same three work, and the observation wrappers still do not:
-PettingZoo's action-mask convention makes each observation a ``Dict`` of
+with ``mask="obs"`` PettingZoo's action-mask convention makes each observation a ``Dict`` of
 ``observation`` and ``action_mask``, which ``frame_stack_v1``, ``normalize_obs_v0``,
 ``dtype_v0``, ``agent_indicator_v0`` and the like refuse; ``delay_observations_v0``
 accepts it but delays the mask too, so an agent is shown the other agent's mask (and

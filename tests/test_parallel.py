@@ -243,3 +243,21 @@ def test_bad_parallel_steps():
     assert infos["planner"]["acting"] and not infos["executor"]["acting"] and env.agents == []
     with pytest.raises(InvalidAction, match="after the episode ended"):
         env.step({"planner": {"stop": 1, "subgoal": np.zeros(2, np.float32)}})
+
+
+def test_compat_docstring_lists_every_option_with_its_default():
+    import inspect
+    import re
+
+    from plex_ma.envs import compat
+
+    rows = re.findall(r"^\| (`\w+`(?:, `\w+`)*) \| ([^|]+) \|", compat.__doc__, re.M)
+    documented = {}
+    for names, default in rows:
+        for n in re.findall(r"`(\w+)`", names):
+            documented[n] = default.strip()
+    params = inspect.signature(compat.compat_env).parameters
+    options = {n for n, p in params.items() if p.kind is p.POSITIONAL_OR_KEYWORD} | {"eli"}
+    assert options <= set(documented), options - set(documented)
+    for n in ("mask", "pad", "flatten", "image_size"):
+        assert documented[n].strip("`\"") == str(params[n].default).strip("'"), n
