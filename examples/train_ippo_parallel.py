@@ -33,6 +33,12 @@ from torch.distributions import Categorical
 from plex_ma.envs import plex_nav_v0
 
 
+# total_steps: parallel env steps; num_steps: parallel steps per rollout; the PPO settings are CleanRL's
+DEFAULTS = dict(total_steps=4096, num_steps=512, lr=2.5e-4, gamma=0.99, gae_lambda=0.95, update_epochs=4,
+                minibatch_size=64, clip_coef=0.2, ent_coef=0.01, vf_coef=0.5, max_grad_norm=0.5,
+                resolution=64, image_size=32, num_scenes=4, max_steps=100, seed=0)
+
+
 def make_env(args):
     """The env: every trainer-facing choice is a constructor option."""
     return plex_nav_v0.compat_parallel_env(mask="info", resolution=args.resolution, image_size=args.image_size,
@@ -132,22 +138,8 @@ def ppo_update(agent: Agent, opt, batch: list[dict], args) -> float:
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--total-steps", type=int, default=4096, help="parallel env steps")
-    p.add_argument("--num-steps", type=int, default=512, help="parallel steps per rollout")
-    p.add_argument("--lr", type=float, default=2.5e-4)
-    p.add_argument("--gamma", type=float, default=0.99)
-    p.add_argument("--gae-lambda", type=float, default=0.95)
-    p.add_argument("--update-epochs", type=int, default=4)
-    p.add_argument("--minibatch-size", type=int, default=64)
-    p.add_argument("--clip-coef", type=float, default=0.2)
-    p.add_argument("--ent-coef", type=float, default=0.01)
-    p.add_argument("--vf-coef", type=float, default=0.5)
-    p.add_argument("--max-grad-norm", type=float, default=0.5)
-    p.add_argument("--resolution", type=int, default=64)
-    p.add_argument("--image-size", type=int, default=32)
-    p.add_argument("--num-scenes", type=int, default=4)
-    p.add_argument("--max-steps", type=int, default=100)
-    p.add_argument("--seed", type=int, default=0)
+    for name, default in DEFAULTS.items():
+        p.add_argument("--" + name.replace("_", "-"), type=type(default), default=default)
     args = p.parse_args(argv)
     torch.manual_seed(args.seed)
 
