@@ -2,34 +2,50 @@
 
 ```python
 from plex_ma.envs import plex_nav_v0
-env = plex_nav_v0.compat_env(resolution=64)   # any plex_nav_v0 argument except eli=True
+env = plex_nav_v0.compat_env(resolution=64)              # each agent its own spaces, mask in the observation
+env = plex_nav_v0.compat_env(pad=True, mask="info")      # one padded layout for both, mask in infos
 ```
 
-Generic PettingZoo trainers (Tianshou's ``PettingZooEnv``, SuperSuit's vector envs, most
-tutorials) want one flat ``Box`` observation, one ``Discrete`` action space and the same
-spaces for every agent. This view gives them that, built from SuperSuit's wrappers plus
-one small wrapper of ours for the action mask:
+Generic PettingZoo trainers want ``Box`` or ``Discrete`` spaces, not the native env's
+mixed ``Dict`` actions (a stop flag with a continuous sub-goal). This view gives the
+planner a ``Discrete`` choice of sub-goals and offers the rest in the layout a trainer
+asks for, through its options; ``compat_parallel_env()`` (same arguments) is its
+turn-based Parallel view (``plex_nav_v0``'s "Parallel API").
 
 | | |
 |---|---|
 | Agents | `["planner", "executor"]`, same turn order, rewards and infos as `plex_nav_v0` |
-| Observation (both agents) | `Dict(observation=Box(float32, (L,)), action_mask=Box(0, 1, (K,), int8))` |
-| Action (both agents) | `Discrete(K)`, `K = 1 + len(subgoal_distances) * subgoal_directions` (33 by default) |
+| Planner action | `Discrete(K)`, `K = 1 + len(subgoal_distances) * subgoal_directions` (33 by default) |
+| Executor action | `Discrete(4)`; with `eli=True` `Dict(action=Discrete(4), eli=Box(128))`; with `pad=True` `Discrete(K)` |
+| Observation | `flatten=True`: one float32 vector each (planner 6,148, executor 4,100 by default); `flatten=False`: the native Dicts; `pad=True`: both zero-padded to one length |
+| Mask | `mask="obs"`: `Dict(observation=..., action_mask=Box(0, 1, (n,), int8))`; `"info"`: `infos[agent]["action_mask"]`; `"none"`: no mask |
 
-**observation** (float32, the same length L for both agents; 6,148 by default): a one-hot
-agent id (`[1, 0]` planner, `[0, 1]` executor), then the agent's own features, then zero
-padding up to L:
+| option | default | meaning |
+|---|---|---|
+| `mask` | `"obs"` | where each agent's action mask goes: `"obs"` (PettingZoo's convention), `"info"`, `"none"` |
+| `pad` | False | True: one observation Box and one `Discrete(K)` for both agents, the executor's 4..K-1 masked (for trainers that need identical spaces, e.g. Tianshou); needs `flatten=True`, `eli=False` and a mask |
+| `flatten` | True | False: the native Dict observations, images whole for a CNN (`image_size` unused) |
+| `eli` | False | True: the executor's action carries the 128-float ELI and the planner's observation holds the last one; needs `mask="none"` (gymnasium samples a Dict action with a dict of masks, and nothing is masked without `pad`) |
+| `image_size` | 32 | side of the executor's downsampled RGB-D in the flat vector |
+| `subgoal_distances`, `subgoal_directions` | `rho_max * (1, 2, 3, 4) / 4`, 8 | the planner's sub-goal grid |
+
+Every other argument is ``plex_nav_v0.env``'s. A bad option raises one ``ValueError``
+naming it.
+
+**observation** (``flatten=True``, float32): a one-hot agent id (`[1, 0]` planner, `[0, 1]`
+executor), then the agent's own features (then zero padding with ``pad=True``):
 
 * planner: the ego map flattened in (channel, row, column) order (6 x 32 x 32 in [0, 1]),
-  then the goal vector (distance m, direction rad). The ELI is not included: it is off here.
+  then the goal vector (distance m, direction rad), then with ``eli=True`` the ELI its
+  executor sent last (128 values).
 * executor: RGB scaled to [0, 1] and depth, downsampled to `image_size` x `image_size`
   (block mean when the resolution is a multiple of it, nearest pixel otherwise) and
   flattened channel-first (R, G, B, depth planes), then the sub-goal vector (distance m,
   direction rad). Reshape `obs[2:2 + 4 * S * S]` to `(4, S, S)` to get the image back.
 
-**action_mask** (int8, length K): 1 for the actions of the agent that observes it. It is
-the same for every step of an agent: the planner may use all K actions, the executor the
-first 4.
+**action_mask** (int8, one entry per Discrete action of the agent): 1 for the actions the
+agent may use. It is the same for every step of an agent: all ones, except with
+``pad=True``, where the executor may use only the first 4 of K.
 
 **actions**:
 
@@ -37,12 +53,12 @@ first 4.
   distance `subgoal_distances[i]` (default `rho_max * (1, 2, 3, 4) / 4` = 1, 2, 3, 4 m) in
   direction `2 pi j / subgoal_directions`, wrapped to [-pi, pi) (default 8 directions, 0 =
   straight ahead, counter-clockwise).
-* executor: `0` STOP, `1` MOVE_FORWARD, `2` TURN_LEFT, `3` TURN_RIGHT. It sends a zero ELI
-  with every action: the ELI channel is off (`eli=False`), because a Discrete action
-  cannot carry a 128-float message. Passing `eli=True` is an error.
+* executor: `0` STOP, `1` MOVE_FORWARD, `2` TURN_LEFT, `3` TURN_RIGHT, sending a zero ELI
+  (the channel is off, ``eli=False``); with ``eli=True`` the native
+  ``{"action": move, "eli": 128 floats}``, which the native env checks.
 
-An action outside `0..K-1`, one that the mask forbids (an executor action above 3), a
-non-integer, or a step after the episode ended raises
+An action outside the agent's range, one that the mask forbids (an executor action above
+3 with ``pad=True``), a non-integer, or a step after the episode ended raises
 :class:`~plex_ma.envs.actions.InvalidAction` naming the problem; nothing is changed.
 
 `compat_env()` pickles (it rebuilds from its arguments, like ``EzPickle``).
@@ -52,17 +68,18 @@ non-integer, or a step after the episode ended raises
 From the inside out:
 
 1. ``plex_nav_v0.env(eli=False, ...)``: the native env with order enforcing.
-2. ``supersuit.observation_lambda_v0``: each agent's Dict observation to its flat vector
-   with the one-hot id in front (``agent_indicator_v0`` is not used: it appends the id at
-   the end, scaled to the space's largest bound, here the 100 m goal distance).
-3. ``supersuit.pad_observations_v0``: zero-pads the shorter vector (the executor's, by default) to the longer one's length.
+2. ``supersuit.observation_lambda_v0`` (``flatten=True``): each agent's Dict observation
+   to its flat vector with the one-hot id in front (``agent_indicator_v0`` is not used: it
+   appends the id at the end, scaled to the space's largest bound, the 100 m goal distance).
+3. ``supersuit.pad_observations_v0`` (``pad=True``): zero-pads the shorter vector (the
+   executor's, by default) to the longer one's length.
 4. ``supersuit.action_lambda_v1``: the Discrete choices to the native Dict actions
-   (planner ``Discrete(K)``, executor ``Discrete(4)``).
-5. ``supersuit.pad_action_space_v0``: both to ``Discrete(K)``. (On its own it would
-   silently map an executor action above 3 to 0, STOP.)
-6. :class:`CompatEnv` (ours), the env the user gets: adds ``action_mask`` and checks
-   every action against it before it reaches step 5, since SuperSuit has no action-mask
-   wrapper. It is an AEC env of its own, not a wrapper: ``env.unwrapped`` is the compat
+   (planner ``Discrete(K)``, executor ``Discrete(4)``, or its native Dict with ``eli=True``).
+5. ``supersuit.pad_action_space_v0`` (``pad=True``): both to ``Discrete(K)``. (On its own
+   it would silently map an executor action above 3 to 0, STOP.)
+6. :class:`CompatEnv` (ours), the env the user gets: puts the mask where ``mask`` says and
+   checks every Discrete action against it before it reaches step 5, since SuperSuit has
+   no action-mask wrapper. It is an AEC env of its own, not a wrapper: ``env.unwrapped`` is the compat
    env itself, so every way of asking for the spaces (``observation_space(agent)``,
    ``action_space(agent)``, the ``observation_spaces`` / ``action_spaces`` dicts, the
    same on ``unwrapped``) gives the compat spaces, which trainers that read
@@ -84,7 +101,7 @@ but which was written for round-robin games: when the executor's turn ends durin
 skip it also replays the planner's previous action.
 
 On ``compat_env()`` the same three work, and the observation wrappers still do not:
-PettingZoo's action-mask convention makes each observation a ``Dict`` of
+with ``mask="obs"`` PettingZoo's action-mask convention makes each observation a ``Dict`` of
 ``observation`` and ``action_mask``, which ``frame_stack_v1``, ``normalize_obs_v0``,
 ``dtype_v0``, ``agent_indicator_v0`` and the like refuse; ``delay_observations_v0``
 accepts it but delays the mask too, so an agent is shown the other agent's mask (and
@@ -103,6 +120,7 @@ from pettingzoo import AECEnv
 
 from .plex_nav import env as native_env
 from .actions import InvalidAction, discrete
+from .parallel import TurnParallelEnv
 from .rules import ELI_DIM
 from .sim.core import ACTION_NAMES, wrap_angle
 from .spaces import MAX_GOAL_DISTANCE
@@ -110,23 +128,46 @@ from .spaces import MAX_GOAL_DISTANCE
 AGENT_IDS = {"planner": 0, "executor": 1}
 
 
-def compat_env(image_size: int = 32, subgoal_distances=None, subgoal_directions: int = 8, **config):
-    """``plex_nav_v0`` with flat Box observations, one Discrete(K) action space and an
-    action mask (see the module docstring).
+MASK_PLACES = ("obs", "info", "none")
+
+
+def compat_env(image_size: int = 32, subgoal_distances=None, subgoal_directions: int = 8, mask: str = "obs",
+               pad: bool = False, flatten: bool = True, **config):
+    """``plex_nav_v0`` with Discrete planner actions, flat Box observations and an action
+    mask, in the layout a trainer asks for (see the module docstring).
 
     Args:
-        image_size: side of the executor's downsampled RGB-D (at most ``resolution``).
+        image_size: side of the executor's downsampled RGB-D (at most ``resolution``;
+            used when ``flatten``).
         subgoal_distances: the planner's sub-goal distances in metres, each in
             (0, rho_max] (default: ``rho_max * (1, 2, 3, 4) / 4``).
         subgoal_directions: number of evenly spaced sub-goal directions (default 8).
-        **config: arguments of ``plex_nav_v0.env`` (``eli`` must be left off or False).
+        mask: where the action mask goes: ``"obs"`` (``Dict(observation, action_mask)``,
+            PettingZoo's convention), ``"info"`` (``infos[agent]["action_mask"]``) or
+            ``"none"``.
+        pad: one observation Box and one ``Discrete(K)`` for both agents (the executor's
+            actions 4..K-1 masked); False keeps each agent's own spaces.
+        flatten: each observation as one float32 vector; False keeps the native Dict
+            observations (images whole, for a CNN).
+        **config: arguments of ``plex_nav_v0.env``. ``eli`` defaults to False here; with
+            ``eli=True`` the executor's action is ``Dict(action=Discrete(4), eli=Box(128))``.
     """
     build_args = dict(image_size=image_size, subgoal_distances=subgoal_distances,
-                      subgoal_directions=subgoal_directions, **config)
-    if config.get("eli", False):
-        raise ValueError("compat_env: the ELI channel is off in the compat env (a Discrete action cannot "
-                         f"carry it); leave eli out or pass eli=False, got eli={config['eli']!r}")
-    config["eli"] = False
+                      subgoal_directions=subgoal_directions, mask=mask, pad=pad, flatten=flatten, **config)
+    if mask not in MASK_PLACES:
+        raise ValueError(f"compat_env: mask={mask!r} must be one of {', '.join(map(repr, MASK_PLACES))}")
+    for name, value in (("pad", pad), ("flatten", flatten), ("eli", config.get("eli", False))):
+        if not isinstance(value, (bool, np.bool_)):
+            raise ValueError(f"compat_env: {name}={value!r} must be True or False")
+    config["eli"] = eli = bool(config.get("eli", False))
+    if pad and (eli or not flatten or mask == "none"):
+        raise ValueError("compat_env: pad=True gives both agents one flat observation and one Discrete(K) with "
+                         "the executor's extra actions masked, so it needs flatten=True, eli=False and a mask; got "
+                         f"flatten={flatten!r}, eli={eli!r}, mask={mask!r}")
+    if eli and mask != "none":
+        raise ValueError(f"compat_env: eli=True needs mask='none', got mask={mask!r}: the executor's action is then "
+                         "Dict(action, eli), which an array mask cannot describe (gymnasium samples a Dict with a "
+                         "dict of masks), and without pad no action is masked")
     base = native_env(**config)
     cfg = base.unwrapped.config
     if not isinstance(image_size, (int, np.integer)) or not 1 <= image_size <= cfg.resolution:
@@ -145,13 +186,23 @@ def compat_env(image_size: int = 32, subgoal_distances=None, subgoal_directions:
                          f"(0, rho_max={cfg.rho_max}]")
     grid = subgoal_grid(dists, int(subgoal_directions))
 
-    e = ss.observation_lambda_v0(base, functools.partial(_flat_obs, image_size=int(image_size)),
-                                 functools.partial(_flat_space, image_size=int(image_size)))
-    e = ss.pad_observations_v0(e)
-    e = ss.action_lambda_v1(e, functools.partial(_native_action, grid=grid),
-                            functools.partial(_discrete_space, k=1 + len(grid)))
-    e = ss.pad_action_space_v0(e)
-    return CompatEnv(e, build_args)
+    e = base
+    if flatten:
+        e = ss.observation_lambda_v0(e, functools.partial(_flat_obs, image_size=int(image_size), eli=eli),
+                                     functools.partial(_flat_space, image_size=int(image_size), eli=eli))
+    if pad:
+        e = ss.pad_observations_v0(e)
+    e = ss.action_lambda_v1(e, functools.partial(_native_action, grid=grid, eli=eli),
+                            functools.partial(_action_space, k=1 + len(grid), eli=eli))
+    if pad:
+        e = ss.pad_action_space_v0(e)
+    return CompatEnv(e, build_args, mask)
+
+
+def compat_parallel_env(**kwargs):
+    """:func:`compat_env` (same arguments) as the turn-based Parallel env, with
+    ``infos[agent]["acting"]`` (see :mod:`plex_ma.envs.parallel`)."""
+    return TurnParallelEnv(compat_env(**kwargs))
 
 
 def subgoal_grid(distances, directions: int) -> np.ndarray:
@@ -172,28 +223,32 @@ def _downsample(img: np.ndarray, size: int) -> np.ndarray:
     return img[idx][:, idx].astype(np.float32)
 
 
-def _flat_obs(obs, obs_space, agent, image_size: int) -> np.ndarray:
+def _flat_obs(obs, obs_space, agent, image_size: int, eli: bool) -> np.ndarray:
     if agent == "planner":
-        return np.concatenate([[1.0, 0.0], obs["ego_map"].ravel(), obs["goal"]]).astype(np.float32)
+        parts = [[1.0, 0.0], obs["ego_map"].ravel(), obs["goal"]] + ([obs["eli"]] if eli else [])
+        return np.concatenate(parts).astype(np.float32)
     rgb = _downsample(obs["rgb"], image_size) / np.float32(255.0)
     depth = _downsample(obs["depth"], image_size)
     img = np.concatenate([rgb, depth], axis=2).transpose(2, 0, 1)
     return np.concatenate([[0.0, 1.0], img.ravel(), obs["subgoal"]]).astype(np.float32)
 
 
-def _flat_space(obs_space, agent, image_size: int) -> spaces.Box:
+def _flat_space(obs_space, agent, image_size: int, eli: bool) -> spaces.Box:
     polar_lo, polar_hi = [0.0, -np.pi], [MAX_GOAL_DISTANCE, np.pi]
     if agent == "planner":
         n = int(np.prod(obs_space["ego_map"].shape))
     else:
         n = 4 * image_size * image_size
-    low = np.concatenate([[0.0, 0.0], np.zeros(n), polar_lo]).astype(np.float32)
-    high = np.concatenate([[1.0, 1.0], np.ones(n), polar_hi]).astype(np.float32)
+    m = ELI_DIM if agent == "planner" and eli else 0
+    low = np.concatenate([[0.0, 0.0], np.zeros(n), polar_lo, np.full(m, -np.inf)]).astype(np.float32)
+    high = np.concatenate([[1.0, 1.0], np.ones(n), polar_hi, np.full(m, np.inf)]).astype(np.float32)
     return spaces.Box(low, high, dtype=np.float32)
 
 
 # ---------------------------------------------------------------- actions
-def _native_action(action, act_space, agent, grid: np.ndarray):
+def _native_action(action, act_space, agent, grid: np.ndarray, eli: bool):
+    if agent == "executor" and eli:
+        return action  # already the native Dict(action, eli); the native env checks it
     a = int(action)
     if agent == "planner":
         if a == 0:
@@ -202,15 +257,17 @@ def _native_action(action, act_space, agent, grid: np.ndarray):
     return {"action": a, "eli": np.zeros(ELI_DIM, np.float32)}
 
 
-def _discrete_space(act_space, agent, k: int) -> spaces.Discrete:
-    return spaces.Discrete(k if agent == "planner" else len(ACTION_NAMES))
+def _action_space(act_space, agent, k: int, eli: bool) -> spaces.Space:
+    if agent == "planner":
+        return spaces.Discrete(k)
+    return act_space if eli else spaces.Discrete(len(ACTION_NAMES))
 
 
 class CompatEnv(AECEnv):
-    """The compat view: an AEC env in its own right over the SuperSuit chain (steps 1-5
-    of the module docstring). It adds ``action_mask`` to the flat observations and rejects
-    masked or malformed actions with :class:`InvalidAction` before they reach SuperSuit's
-    wrappers.
+    """The compat view: an AEC env in its own right over the SuperSuit chain (the steps of
+    the module docstring). It puts each agent's action mask where ``mask`` says and
+    rejects masked or malformed actions with :class:`InvalidAction` before they reach
+    SuperSuit's wrappers.
 
     Every way of asking for its spaces gives the compat spaces: ``observation_space(agent)``
     and ``action_space(agent)``, the ``observation_spaces`` and ``action_spaces`` dicts,
@@ -218,30 +275,32 @@ class CompatEnv(AECEnv):
     RLlib read the spaces there). The native env under it is :attr:`native`; its
     attributes (``config``, ``worlds``, ``scene_id`` ...) are also read through this one."""
 
-    def __init__(self, chain: AECEnv, build_args: dict):
+    def __init__(self, chain: AECEnv, build_args: dict, mask: str):
         super().__init__()
         self.env = chain
         self._build_args = dict(build_args)
+        self.mask = mask
         agents = chain.possible_agents
         self.possible_agents = list(agents)
         self.metadata = chain.metadata
         self.render_mode = chain.render_mode
-        self.num_actions = int(chain.action_space(agents[0]).n)
-        own = {"planner": self.num_actions, "executor": len(ACTION_NAMES)}
+        self._act_spaces = {a: chain.action_space(a) for a in agents}
+        self.num_actions = int(self._act_spaces["planner"].n)
         self._masks = {}
         for a in agents:
-            m = np.zeros(self.num_actions, np.int8)
-            m[:own[a]] = 1
+            space = self._act_spaces[a]
+            m = np.zeros(space.n if isinstance(space, spaces.Discrete) else 0, np.int8)
+            m[:self.num_actions if a == "planner" else len(ACTION_NAMES)] = 1
             self._masks[a] = m
-        self._obs_space = spaces.Dict({
-            "observation": chain.observation_space(agents[0]),
-            "action_mask": spaces.Box(0, 1, (self.num_actions,), np.int8),
-        })
-        self._act_space = chain.action_space(agents[0])
+        self._obs_spaces = {a: chain.observation_space(a) for a in agents}
+        if mask == "obs":
+            self._obs_spaces = {a: spaces.Dict({"observation": self._obs_spaces[a],
+                                                "action_mask": spaces.Box(0, 1, self._masks[a].shape, np.int8)})
+                                for a in agents}
 
     def __getattr__(self, name: str):
         # the episode's state (agents, agent_selection, rewards, terminations, truncations,
-        # infos, _cumulative_rewards) and the native env's attributes, read through
+        # _cumulative_rewards) and the native env's attributes, read through
         if name == "env" or (name.startswith("_") and name != "_cumulative_rewards"):
             raise AttributeError(name)
         return getattr(self.env, name)
@@ -258,24 +317,34 @@ class CompatEnv(AECEnv):
         return self.env.unwrapped
 
     def observation_space(self, agent):
-        return self._obs_space
+        return self._obs_spaces[agent]
 
     def action_space(self, agent):
-        return self._act_space
+        return self._act_spaces[agent]
 
     @property
     def observation_spaces(self) -> dict:
-        return {a: self._obs_space for a in self.possible_agents}
+        return dict(self._obs_spaces)
 
     @property
     def action_spaces(self) -> dict:
-        return {a: self._act_space for a in self.possible_agents}
+        return dict(self._act_spaces)
+
+    @property
+    def infos(self) -> dict:
+        """The native infos; with ``mask="info"`` each also holds the agent's ``action_mask``."""
+        infos = self.env.infos
+        if self.mask != "info":
+            return infos
+        return {a: {**info, "action_mask": self._masks[a].copy()} for a, info in infos.items()}
 
     def action_mask(self, agent) -> np.ndarray:
         return self._masks[agent].copy()
 
     def observe(self, agent):
-        return {"observation": self.env.observe(agent), "action_mask": self._masks[agent].copy()}
+        if self.mask == "obs":
+            return {"observation": self.env.observe(agent), "action_mask": self._masks[agent].copy()}
+        return self.env.observe(agent)
 
     def reset(self, seed=None, options=None) -> None:
         self.env.reset(seed=seed, options=options)
@@ -298,19 +367,20 @@ class CompatEnv(AECEnv):
             if self.terminations[agent] or self.truncations[agent]:
                 if action is not None:
                     raise InvalidAction(f"{agent}: the episode has ended; the only valid action is None (dead step)")
-            else:
+            elif isinstance(self._act_spaces[agent], spaces.Discrete):
                 action = self._check(agent, action)
         self.env.step(action)
 
     def _check(self, agent: str, action) -> int:
-        k = self.num_actions
+        k = self._act_spaces[agent].n
         if action is None:
             raise InvalidAction(f"{agent}: action is None but the {agent} is alive; expected an integer in 0..{k - 1}")
         if isinstance(action, np.ndarray) and action.shape == (1,):
             action = action.reshape(())
         a = int(discrete(action, k, f"{agent}: action", (), integers_only=True))
         if not self._masks[agent][a]:
+            where = {"obs": "observation['action_mask']", "info": "infos[agent]['action_mask']"}[self.mask]
             raise InvalidAction(f"{agent}: action {a} is masked out; the {agent}'s actions are "
-                                f"0..{int(self._masks[agent].sum()) - 1} ({', '.join(ACTION_NAMES)}); "
-                                "see observation['action_mask']")
+                                f"0..{int(self._masks[agent].sum()) - 1} ({', '.join(ACTION_NAMES)}); see {where}")
         return a
+

@@ -14,7 +14,7 @@ env = plex_nav_v0.env(resolution=128)
 | Executor action | `Dict(action=Discrete(4), eli=Box((128,)))` |
 | Executor observation | `Dict(rgb=Box(0, 255, (H, W, 3), uint8), depth=Box(0, 1, (H, W, 1)), subgoal=Box((2,)))` |
 | Render modes | `human` (a live window), `rgb_array` (top-down map, path, goal, current sub-goal) |
-| `is_parallelizable` | False |
+| `is_parallelizable` | False (`parallel_env()` is the turn-based Parallel view; see "Parallel API") |
 
 Two cooperating agents navigate to a PointGoal in an indoor scene (the PLEX paper's
 hierarchy). The **planner** sees a 32x32 egocentric top-down map (0.5 m cells; channel 0
@@ -106,13 +106,45 @@ unchanged (`pettingzoo.test.render_test` passes headless).
 | `executor_stop_penalty`, `executor_collision_reward` | 0.0, 0.0 | the executor's extra rewards for a STOP outside `subgoal_radius` and for a blocked move (each <= 0) |
 | `render_mode` | None | "human" or "rgb_array" (see Rendering) |
 
+## Parallel API
+
+```python
+env = plex_nav_v0.parallel_env(resolution=64)                      # the native spaces
+env = plex_nav_v0.compat_parallel_env(mask="info", resolution=64)   # Box/Discrete, see compat_env
+obs, infos = env.reset(seed=0)
+obs, rewards, terminations, truncations, infos = env.step({"planner": ..., "executor": ...})
+```
+
+Both are turn-based Parallel views (`plex_ma.envs.parallel.TurnParallelEnv`): each
+parallel step is one AEC step, and only the action of the agent whose turn it is is
+used; the other agent's action is ignored and may be left out of the dict.
+`infos[agent]["acting"]` is True for the agent whose action the step used (False for
+both after `reset`), so a trainer keeps that agent's transition and drops the other's:
+its action changed nothing. `rewards` are what each agent earned in that step; the
+planner earns during the executor's steps, so add them to its last kept transition
+(`examples/train_ippo_parallel.py` does). After the step that ends the episode `agents`
+is empty (the dead steps are taken inside); call `reset()`.
+
+| view | agent | observation | action | mask |
+|---|---|---|---|---|
+| `parallel_env()` | planner | `Dict(ego_map, goal, eli)` as above | `Dict(stop=Discrete(2), subgoal=Box(2))` | none |
+| | executor | `Dict(rgb, depth, subgoal)` as above | `Dict(action=Discrete(4), eli=Box(128))` | none |
+| `compat_parallel_env()` | planner | `Box(6148)` (ego map, goal; + the ELI, 6276, with `eli=True`) or its Dict (`flatten=False`) | `Discrete(33)` | `mask=`: in the observation (`"obs"`), in `infos` (`"info"`) or none |
+| | executor | `Box(4100)` (RGB-D 32x32, sub-goal) or its Dict (`flatten=False`) | `Discrete(4)`; `Dict(action=Discrete(4), eli=Box(128))` with `eli=True` | the same |
+| `compat_parallel_env(pad=True)` | both | one `Box(6148)` | one `Discrete(33)`, the executor's 4-32 masked | `"obs"` or `"info"` |
+
+`compat_parallel_env(**kwargs)` takes `compat_env`'s arguments (`plex_ma.envs.compat`
+documents the layouts). PettingZoo's `parallel_api_test` passes on both views;
+`tests/test_parallel.py` also checks whole episodes for determinism under a seed,
+`acting` against the AEC turn order, and that the other agent's action changes nothing.
+
 ## Why `is_parallelizable` is False, and `max_cycles_test`
 
 The agents do not act round-robin: the executor acts up to `n_ex` times per planner
 decision, and only one of them acts at any moment, so the parallel API (every agent acts
-each step) does not describe it. `pettingzoo.utils.conversions.turn_based_aec_to_parallel`
-still works: it presents each AEC step as a parallel step in which only the current agent
-acts (the other agent's action is ignored), with the observations of both agents.
+each step) does not describe it. The turn-based views above present it anyway, as
+PettingZoo's `turn_based_aec_to_parallel` also does (that one names the agent whose
+turn comes *next* in `infos[agent]["active_agent"]`, not the one whose action was used).
 `pettingzoo.test.max_cycles_test` does not apply: it needs a `max_cycles` argument with
 round-robin cycles, while this env's length is bounded by `max_steps` executor actions.
 
@@ -125,7 +157,7 @@ native env. Reward and timing wrappers do: `clip_reward_v0`, `sticky_actions_v0`
 `frame_skip_v0` (the last two repeat an agent's action, which only makes sense for the
 executor; `frame_skip_v0`, written for round-robin games, also replays the planner's
 previous action when the executor's turn ends during a skip). `compat_env()` gives a
-Box/Discrete version for generic trainers; its docstring (`plex_ma.envs.compat`) lists
+Box/Discrete view for generic trainers; its docstring (`plex_ma.envs.compat`) lists
 every SuperSuit wrapper and what it does here.
 
 ## Version history
@@ -135,9 +167,20 @@ every SuperSuit wrapper and what it does here.
   (`scene_index`; the scene's name is `env.unwrapped.scene_id`; `success` and `spl` read
   0.0 until the end), and the `human` render mode. Observations, actions, rewards and
   episodes are unchanged, so results stay comparable and the name stays `plex_nav_v0`.
+* v0, Parallel views: `parallel_env()`, `compat_parallel_env()`, and `compat_env`'s
+  options `mask`, `pad`, `flatten` and `eli`. `compat_env()` now gives each agent its own
+  spaces (`pad=True` gives the former shared `Discrete(33)` layout); the native env is
+  unchanged.
 """
 
-from .compat import compat_env
+from .compat import compat_env, compat_parallel_env
+from .parallel import TurnParallelEnv
 from .plex_nav import AGENTS, env, raw_env
 
-__all__ = ["AGENTS", "compat_env", "env", "raw_env"]
+
+def parallel_env(**kwargs) -> TurnParallelEnv:
+    """``env(**kwargs)`` as the turn-based Parallel env (see "Parallel API" above)."""
+    return TurnParallelEnv(env(**kwargs))
+
+
+__all__ = ["AGENTS", "compat_env", "compat_parallel_env", "env", "parallel_env", "raw_env"]

@@ -5,9 +5,10 @@
 
 Tianshou's ``PettingZooEnv`` wraps the AEC env for its vector envs and collector, and
 ``MultiAgentOnPolicyAlgorithm`` routes every transition to the PPO of the agent that
-acted in it. The compat env gives what they need: one Box observation and one
-Discrete(33) action space for both agents, and an action mask (the executor may only use
-actions 0-3), which the networks below apply to their logits.
+acted in it. Tianshou needs identical spaces for all agents, so the example asks the
+compat env for ``pad=True``: one Box observation and one Discrete(33) action space for
+both agents, and an action mask (the executor may only use actions 0-3), which the
+networks below apply to their logits.
 
 Crediting each agent with all of its rewards
 --------------------------------------------
@@ -221,7 +222,7 @@ class LoggedPettingZooEnv(PettingZooEnv):
 
 
 def make_env(config: dict, seed: int, log: list | None = None, stop_within: float | None = None) -> PettingZooEnv:
-    env = LoggedPettingZooEnv(plex_nav_v0.compat_env(**config), log, stop_within)
+    env = LoggedPettingZooEnv(plex_nav_v0.compat_env(pad=True, **config), log, stop_within)
     env.reset(seed=seed)
     return env
 

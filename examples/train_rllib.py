@@ -14,7 +14,7 @@ action. Each agent gets its own policy (``planner``, ``executor``). What each vi
   vector; the default PPO module (an MLP) then builds. Its Dict actions (a stop flag and
   a continuous sub-goal; an action and the 128-float ELI) get RLlib's default
   distributions.
-* ``compat_env()``: one ``Discrete(33)`` action space; the observation is
+* ``compat_env(pad=True)``: one ``Discrete(33)`` action space; the observation is
   ``Dict(action_mask, observation)``, and the executor may only use actions 0-3 (the env
   rejects the others: "action 20 is masked out"). Flattening the Dict would hide the mask
   from the policy, so instead :class:`MaskedPPOModule` (RLlib's action-masking example
@@ -63,7 +63,9 @@ class MaskedPPOModule(ActionMaskingTorchRLModule):
 
 
 def make_env(view: str, env_config: dict) -> PettingZooEnv:
-    return PettingZooEnv(getattr(plex_nav_v0, view)(**env_config))
+    if view == "compat_env":
+        return PettingZooEnv(plex_nav_v0.compat_env(pad=True, **env_config))
+    return PettingZooEnv(plex_nav_v0.env(**env_config))
 
 
 def build(view: str, env_config: dict, batch: int = 400, seed: int = 0):

@@ -9,8 +9,10 @@ per group, the agent's ``observation``, its ``action_mask``, a ``mask`` that is 
 the agent whose turn it is, the ``reward`` it earned in that step, its done flags and
 its ``info`` (the env's numeric infos: ``success``, ``spl``, ``distance_to_goal``, ...).
 Each step both policies propose an action; the wrapper applies the acting agent's.
-The compat env gives one flat Box observation and ``Discrete(33)`` actions with a mask
-(the executor may only use actions 0-3), which ``MaskedCategorical`` applies. The
+The compat env gives each agent a flat Box observation and its own ``Discrete`` actions
+(the planner's 33, the executor's 4) with an ``action_mask``, which ``MaskedCategorical``
+applies (it forbids something only with ``pad=True``, where the executor's 4-32 are
+masked). The
 native ``plex_nav_v0.env()`` wraps too (its Dict spaces become composite specs), but
 its Dict actions (a stop flag with a continuous sub-goal; an action with a 128-float
 ELI) would need a composite distribution; this example keeps to the compat env.

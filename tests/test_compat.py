@@ -24,6 +24,7 @@ pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 K = 33  # STOP + 4 distances x 8 directions
 EGO = 6 * 32 * 32  # the planner's ego map, flattened
 L = 2 + EGO + 2  # one-hot id, the planner's ego map and goal vector (longer than the executor's RGB-D 32x32)
+PAD = dict(SMALL, pad=True)  # one padded layout for both agents
 
 
 # ---------------------------------------------------------------- PettingZoo's tests
@@ -49,9 +50,9 @@ def test_performance_benchmark(capsys):
 
 # ---------------------------------------------------------------- layout
 def test_spaces_are_flat_shared_and_stable():
-    env = plex_nav_v0.compat_env(**SMALL)
+    env = plex_nav_v0.compat_env(**PAD)
     ob, act = env.observation_space("planner"), env.action_space("planner")
-    assert ob is env.observation_space("executor") and act is env.action_space("executor")
+    assert ob == env.observation_space("executor") and act == env.action_space("executor")
     assert ob is env.observation_space("planner")
     assert isinstance(act, spaces.Discrete) and act.n == K
     assert isinstance(ob, spaces.Dict) and set(ob.spaces) == {"observation", "action_mask"}
@@ -67,8 +68,8 @@ def test_every_accessor_gives_the_same_spaces():
     parallel view: skrl and RLlib read ``unwrapped.observation_spaces``."""
     from pettingzoo.utils.conversions import turn_based_aec_to_parallel
 
-    env = plex_nav_v0.compat_env(**SMALL)
-    par = turn_based_aec_to_parallel(plex_nav_v0.compat_env(**SMALL))
+    env = plex_nav_v0.compat_env(**PAD)
+    par = turn_based_aec_to_parallel(plex_nav_v0.compat_env(**PAD))
     ob, act = env.observation_space("planner"), env.action_space("planner")
     for view in (env, env.unwrapped, par, par.unwrapped):
         for agent in ("planner", "executor"):
@@ -102,7 +103,7 @@ def test_turn_based_parallel_view_steps():
 
 
 def test_observation_layout():
-    env = plex_nav_v0.compat_env(**SMALL)
+    env = plex_nav_v0.compat_env(**PAD)
     env.reset(seed=3)
     raw = env.native
     native_p = raw.observe("planner")
@@ -133,7 +134,7 @@ def test_observation_layout():
 
 def test_nearest_pixel_downsampling_and_options():
     env = plex_nav_v0.compat_env(resolution=48, num_scenes=4, image_size=20, subgoal_distances=(0.5, 1.5),
-                                 subgoal_directions=4)
+                                 subgoal_directions=4, pad=True)
     assert env.action_space("planner").n == 1 + 2 * 4
     # The planner's 2 + EGO + 2 values are the longer part; the executor's are padded.
     assert env.observation_space("planner")["observation"].shape == (max(2 + EGO + 2, 2 + 4 * 20 * 20 + 2),)
@@ -231,7 +232,7 @@ def test_bad_actions(turn, action, match):
 @pytest.mark.parametrize("action", [4, 17, 32])
 def test_masked_executor_actions_are_rejected(action):
     # pad_action_space_v0 alone would turn these into 0 (STOP) without a word.
-    env = plex_nav_v0.compat_env(**SMALL)
+    env = plex_nav_v0.compat_env(**PAD)
     env.reset(seed=0)
     env.step(3)
     before = state_snapshot(env)
@@ -345,7 +346,7 @@ def test_supersuit_observation_wrappers_refuse_compat_env(name):
 
 
 def test_delay_observations_shows_the_other_agents_mask_on_compat_env():
-    env = ss.delay_observations_v0(plex_nav_v0.compat_env(**SMALL), 2)
+    env = ss.delay_observations_v0(plex_nav_v0.compat_env(**PAD), 2)
     with pytest.raises(InvalidAction, match="masked out"):
         api_test(env, num_cycles=200)
 
