@@ -107,6 +107,8 @@ class TrainConfig:
     """PLEX only: a constant added to the untrained executor's STOP logit, the same in every state (it sets how long its first turns last)"""
     planner_subgoal_forward: float = 0.0
     """PLEX, prior-free planner only: the untrained sub-goal mean's constant start, this many metres ahead in every state"""
+    planner_stop_radius: float | None = None
+    """PLEX, prior-free planner only: no stop head; the planner stops when its sampled sub-goal lies within this many metres of the agent (None: a learned stop head)"""
     executor_no_reversal: bool = True
     """the executor (and the flat policies, which share its network) never undoes its previous turn within a sub-goal (or episode): no RIGHT right after LEFT, nor LEFT after RIGHT"""
     planner_value_iteration: bool = True
@@ -249,6 +251,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.executor_heading_prior is None or 0 < cfg.executor_heading_prior <= 20, "executor_heading_prior",
          "must be in (0, 20] logits")
     need(-20 <= cfg.executor_stop_bias <= 20, "executor_stop_bias", "must be in [-20, 20] logits")
+    need(cfg.planner_stop_radius is None or 0 < cfg.planner_stop_radius <= 1, "planner_stop_radius",
+         "must be in (0, 1] metres")
     need(0 <= cfg.planner_subgoal_forward <= cfg.env.rho_max, "planner_subgoal_forward", "must be in [0, rho_max] metres")
     need(0.5 < cfg.random_subgoal_distance <= cfg.env.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")

@@ -433,3 +433,26 @@ def test_constant_starts_are_the_same_in_every_state():
     p_stop = 1 / (1 + 3 * math.exp(3.0))
     torch.testing.assert_close(p[:, STOP], torch.full((5,), p_stop), atol=0.01, rtol=0)
     torch.testing.assert_close(p[:, 1:], torch.full((5, 3), (1 - p_stop) / 3), atol=0.02, rtol=0)  # the moves
+
+
+def test_planner_stop_radius_stops_on_its_own_subgoal():
+    """--planner-stop-radius: no stop head; a decision stops exactly when its sampled (or,
+    greedy, mean) sub-goal lies within the radius of the agent, and its log-prob is the
+    Gaussian density of that sample alone."""
+    torch.manual_seed(0)
+    net = Planner(stop_radius=0.2, subgoal_radius=0.2)
+    assert not hasattr(net, "stop_logits")
+    obs = net.example_obs(256)
+    with torch.no_grad():
+        net.subgoal_log_std.fill_(math.log(0.3))
+    act = net.act(obs)
+    near = torch.hypot(act["raw_subgoal"][:, 0], act["raw_subgoal"][:, 1]) < 0.2
+    assert near.any() and not near.all()
+    assert torch.equal(act["stop"], near.long())
+    _, sub_d, _ = net(obs)
+    torch.testing.assert_close(act["log_prob"], sub_d.log_prob(act["raw_subgoal"]).sum(-1))
+    log_prob, entropy, _ = net.evaluate_actions(obs, act["stop"], act["raw_subgoal"])
+    torch.testing.assert_close(log_prob, act["log_prob"])
+    torch.testing.assert_close(entropy, sub_d.entropy().sum(-1))
+    assert net.act(obs, deterministic=True)["stop"].all()  # untrained: the mean is near the agent
+    assert not Planner(stop_radius=0.2, subgoal_forward=1.0).act(obs, deterministic=True)["stop"].any()
