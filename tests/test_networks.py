@@ -456,15 +456,3 @@ def test_planner_stop_radius_stops_on_its_own_subgoal():
     torch.testing.assert_close(entropy, sub_d.entropy().sum(-1))
     assert net.act(obs, deterministic=True)["stop"].all()  # untrained: the mean is near the agent
     assert not Planner(stop_radius=0.2, subgoal_forward=1.0).act(obs, deterministic=True)["stop"].any()
-
-
-def test_planner_state_std_starts_constant_and_learns_per_state():
-    """--planner-state-std: the sub-goal std starts at init_std in every state and is a
-    learned function of the state (a log-prob gradient reaches its head)."""
-    torch.manual_seed(0)
-    net = Planner(state_std=True, init_std=0.5, stop_radius=0.2)
-    obs = net.example_obs(16)
-    _, sub_d, _ = net(obs)
-    torch.testing.assert_close(sub_d.stddev, torch.full((16, 2), 0.5), atol=0.02, rtol=0)
-    sub_d.log_prob(torch.zeros(16, 2)).sum().backward()
-    assert net.subgoal_log_std.mlp[0].weight.grad.abs().sum() > 0

@@ -24,7 +24,6 @@ PI32 = float(np.nextafter(np.float32(np.pi), np.float32(0)))
 
 GOAL_FEATURES = 5  # planner_goal_features' width
 PLAN_FEATURES = 4  # plan_features' width
-LOG_STD_RANGE = (math.log(0.02), math.log(2.0))  # bounds of a state-dependent sub-goal std (m)
 SUBGOAL_MARGIN = 0.05  # m: sub-goals lie at least this far beyond the executor's sub-goal radius
 MAP_PLAN = "map_plan"  # observation key of a stored value-iteration read-out (MapEncoder.map_plan)
 STOP_INIT_LOGIT = -3.0  # Planner's constant starting stop bias: p(stop) ~0.05 in every state
@@ -170,16 +169,13 @@ class Planner(MapEncoder):
     when its sampled sub-goal lies within ``stop_radius`` of the agent, so the action is the
     sample alone and its log-prob is the Gaussian's. A planner that has learned to send the
     executor to the goal then stops where the goal is its own position.
-    With ``state_std`` (``--planner-state-std``) the sub-goal's log-std is a head over the
-    same features (started at ``init_std`` in every state, bounded by ``LOG_STD_RANGE``)
-    rather than one learned value for all states.
     """
 
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
                  map_size: int = 32, init_std: float = 0.5, head_hidden: int = 256,
                  value_iteration: bool = False, subgoal_radius: float | None = None, fine_map: bool = False,
-                 subgoal_forward: float = 0.0, stop_radius: float | None = None, state_std: bool = False):
+                 subgoal_forward: float = 0.0, stop_radius: float | None = None):
         # ``convs`` and ``vin`` (the map reading) keep their names: checkpoints key on them
         super().__init__(ego_channels, channels, map_size, value_iteration, fine_map)
         self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
@@ -192,12 +188,7 @@ class Planner(MapEncoder):
         if subgoal_forward:  # a constant start of the sub-goal mean, this far ahead in every state
             with torch.no_grad():
                 self.subgoal_mean.linear.bias[0] += subgoal_forward
-        if state_std:  # a head over the same features, started at log(init_std) in every state
-            self.subgoal_log_std = Head(hidden + GOAL_FEATURES + PLAN_FEATURES, head_hidden, 2, 0.01)
-            with torch.no_grad():
-                self.subgoal_log_std.linear.bias.fill_(math.log(init_std))
-        else:
-            self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
+        self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
 
     def _build_heads(self, feat: int, head_hidden: int) -> None:
         if self.stop_radius is None:
@@ -237,11 +228,7 @@ class Planner(MapEncoder):
         (forward, left) positions, value (B,))."""
         h = self.features(obs)
         mean = self.subgoal_mean(h)
-        if isinstance(self.subgoal_log_std, Head):
-            std = self.subgoal_log_std(h).clamp(LOG_STD_RANGE[0], LOG_STD_RANGE[1]).exp()
-        else:
-            std = self.subgoal_log_std.exp().expand_as(mean)
-        subgoal = Normal(mean, std)
+        subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
         stop = None if self.stop_radius is not None else Categorical(logits=self.stop_logits(h))
         return stop, subgoal, self.critic(h).squeeze(-1)
 
