@@ -25,11 +25,9 @@ planner     geodesic progress towards the end goal + slack + collision
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, fields
 
-import numba
 import numpy as np
 
 from .actions import InvalidAction, discrete, real
@@ -135,26 +133,6 @@ def progress_reward(d_prev: np.ndarray, d_new: np.ndarray, collided: np.ndarray,
     return (d_prev - d_new) + cfg.slack_reward + cfg.collision_reward * collided
 
 
-def _serial_for_one_world(method):
-    """Run ``method`` with one numba thread when there is a single world (the AEC and gym
-    envs). One world leaves the kernels nothing to share out, so worker threads would only
-    add their wake-ups (numba's OpenMP threads spin, which slows single-world steps badly
-    beside other busy processes)."""
-
-    @functools.wraps(method)
-    def run(self, *args, **kwargs):
-        if self.n != 1 or numba.get_num_threads() == 1:
-            return method(self, *args, **kwargs)
-        prev = numba.get_num_threads()
-        numba.set_num_threads(1)
-        try:
-            return method(self, *args, **kwargs)
-        finally:
-            numba.set_num_threads(prev)
-
-    return run
-
-
 class OneWorldEnv:
     """The episode and scene properties of an env over one world (``plex_nav_v0``,
     ``plex_ma/PointNav-v0``); the env sets ``self.worlds``."""
@@ -230,7 +208,6 @@ class _Worlds:
         return sample_episode(self.bank, int(rng.integers(len(self.bank))), rng, self.geo,
                               max_geodesic=self.max_geodesic)
 
-    @_serial_for_one_world
     def reset_rows(self, rows, episodes: list[Episode] | None = None) -> None:
         """Start new episodes in ``rows`` (given ones, or the next sampled/fixed ones)."""
         rows = np.asarray(rows, np.int64).reshape(-1)
@@ -309,7 +286,6 @@ class PlexWorlds(_Worlds):
         self.eli = np.zeros((n, ELI_DIM), np.float32)  # last ELI the executor sent
         self.planner_decisions = np.zeros(n, np.int64)
 
-    @_serial_for_one_world
     def reset_rows(self, rows, episodes=None) -> None:
         super().reset_rows(rows, episodes)
         rows = np.asarray(rows, np.int64).reshape(-1)
@@ -323,21 +299,19 @@ class PlexWorlds(_Worlds):
         self.planner_decisions[rows] = 0
 
     # ------------------------------------------------------------------ observations
-    @_serial_for_one_world
     def planner_obs(self, rows) -> dict:
         rows = np.asarray(rows, np.int64).reshape(-1)
         return {
             "ego_map": self.sim.egomap(rows),
             "goal": self.goal_vector(rows),
-            "eli": self.eli[rows].copy() if self.cfg.eli else np.zeros((len(rows), ELI_DIM), np.float32),
+            "eli": self.eli[rows] if self.cfg.eli else np.zeros((len(rows), ELI_DIM), np.float32),  # a copy
         }
 
-    @_serial_for_one_world
     def executor_obs(self, rows) -> dict:
         rows = np.asarray(rows, np.int64).reshape(-1)
         return {
-            "rgb": self.sim.rgb[rows].copy(),
-            "depth": self.sim.depth[rows].copy(),
+            "rgb": self.sim.rgb[rows],  # indexing by an array copies
+            "depth": self.sim.depth[rows],
             "subgoal": self.sim.polar_to(self.subgoal[rows], rows),
         }
 
@@ -364,7 +338,6 @@ class PlexWorlds(_Worlds):
         return a, e
 
     # ------------------------------------------------------------------ stepping
-    @_serial_for_one_world
     def step(self, stop=None, subgoal=None, action=None, eli=None) -> PlexStep:
         """One action for every world that is not done: the planner's (``stop``, ``subgoal``)
         where it is the planner's turn, the executor's (``action``, ``eli``) elsewhere.
@@ -495,14 +468,12 @@ class PointNavWorlds(_Worlds):
     def __init__(self, cfg: NavConfig, num_worlds: int = 1, seed: int | None = None, egomap: bool = False):
         super().__init__(cfg, num_worlds, seed, egomap=egomap)
 
-    @_serial_for_one_world
     def obs(self, rows) -> dict:
         rows = np.asarray(rows, np.int64).reshape(-1)
-        return {"rgb": self.sim.rgb[rows].copy(), "depth": self.sim.depth[rows].copy(),
+        return {"rgb": self.sim.rgb[rows], "depth": self.sim.depth[rows],  # indexing by an array copies
                 "pointgoal": self.goal_vector(rows),
                 **({"ego_map": self.sim.egomap(rows)} if self.sim.use_egomap else {})}
 
-    @_serial_for_one_world
     def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Apply one action per live world. Returns (rewards, terminated, truncated)."""
         cfg = self.cfg
