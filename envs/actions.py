@@ -78,6 +78,6 @@ def real(x, what: str, shape: tuple) -> np.ndarray:
                             f"{' of dtype ' + str(x.dtype) if hasattr(x, 'dtype') else ''}") from None
     if a.shape != tuple(shape):
         raise InvalidAction(f"{what} has shape {a.shape}, expected {tuple(shape)}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise InvalidAction(f"{what} contains NaN or infinite values")
     return a

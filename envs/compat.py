@@ -119,7 +119,7 @@ import supersuit as ss
 from gymnasium import spaces
 from pettingzoo import AECEnv
 
-from .plex_nav import env as native_env
+from .plex_nav import EPISODE_STATE, env as native_env
 from .actions import InvalidAction, discrete
 from .parallel import TurnParallelEnv
 from .rules import ELI_DIM
@@ -130,9 +130,6 @@ AGENT_IDS = {"planner": 0, "executor": 1}
 
 
 MASK_PLACES = ("obs", "info", "none")
-# The attributes of the episode's state that CompatEnv reads from the native env.
-_EPISODE_STATE = frozenset({"agents", "agent_selection", "rewards", "terminations", "truncations",
-                            "_cumulative_rewards"})
 
 
 def compat_env(image_size: int = 32, subgoal_distances=None, subgoal_directions: int = 8, mask: str = "obs",
@@ -332,7 +329,7 @@ class CompatEnv(AECEnv):
         # The episode's state (agents, agent_selection, rewards, ...) is the native env's:
         # no wrapper of the chain keeps its own, so it is read there at once instead of
         # through the chain's five __getattr__ levels (a turn reads it about ten times).
-        if name in _EPISODE_STATE:
+        if name in EPISODE_STATE:
             return self._state(name)
         # the native env's other attributes, read through
         if name == "env" or (name.startswith("_") and name != "_cumulative_rewards"):

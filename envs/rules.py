@@ -345,8 +345,8 @@ class PlexWorlds(_Worlds):
         Actions are validated before anything changes."""
         n = self.n
         live = ~self.done
-        pl = np.flatnonzero(live & (self.turn == PLANNER))
-        ex = np.flatnonzero(live & (self.turn == EXECUTOR))
+        pl = np.nonzero(live & (self.turn == PLANNER))[0]
+        ex = np.nonzero(live & (self.turn == EXECUTOR))[0]
         # A batched caller may move one agent only: worlds of the agent it gave no action
         # for wait. With one world (the AEC env) a missing action is an error.
         if n > 1 and stop is None and subgoal is None and action is not None:
@@ -407,7 +407,7 @@ class PlexWorlds(_Worlds):
         if not len(rows):
             return
         d = self.sim.distance_to(self.subgoal, rows)[rows]
-        if not np.all(np.isfinite(d)):
+        if not np.isfinite(d).all():
             bad = rows[~np.isfinite(d)]
             raise RuntimeError(f"sub-goal unreachable in worlds {bad.tolist()} after snapping; this is a bug")
         self.subgoal_dist[rows] = d
@@ -421,13 +421,13 @@ class PlexWorlds(_Worlds):
         acts[rows] = action
         active = np.zeros(self.n, np.bool_)
         active[rows] = True
-        d_goal_prev = sim.distance_to_goal[rows].copy()
-        d_sub_prev = self.subgoal_dist[rows].copy()
-        pos_prev = sim.pos[rows].copy()
+        d_goal_prev = sim.distance_to_goal[rows]  # indexing by an array copies
+        d_sub_prev = self.subgoal_dist[rows]
+        pos_prev = sim.pos[rows]
         collided = sim.step(acts, active)[rows]
         # The sub-goal is fixed during the turn, so the geodesic distance to it changes only
         # where the agent moved; turns, STOP and blocked moves keep the previous value.
-        moved = np.any(sim.pos[rows] != pos_prev, axis=1)
+        moved = (sim.pos[rows] != pos_prev).any(axis=1)
         self._measure_subgoals(new_subgoals, rows[moved])
         d_sub = self.subgoal_dist[rows]
         stopped = action == STOP
@@ -436,8 +436,10 @@ class PlexWorlds(_Worlds):
         # within the radius would pay the bonus for a STOP on the spot.
         reached = stopped & (d_sub < cfg.subgoal_radius) & (self.subgoal_dist0[rows] >= cfg.subgoal_radius)
         ex_r += cfg.subgoal_reward * reached
-        ex_r += cfg.executor_stop_penalty * (stopped & (d_sub >= cfg.subgoal_radius))
-        ex_r += cfg.executor_collision_reward * collided
+        if cfg.executor_stop_penalty:  # the two optional terms, 0 by default
+            ex_r += cfg.executor_stop_penalty * (stopped & (d_sub >= cfg.subgoal_radius))
+        if cfg.executor_collision_reward:
+            ex_r += cfg.executor_collision_reward * collided
         pl_r = progress_reward(d_goal_prev, sim.distance_to_goal[rows], collided, cfg)
         out.rewards[rows, EXECUTOR] += ex_r.astype(np.float32)
         out.rewards[rows, PLANNER] += pl_r.astype(np.float32)
