@@ -811,13 +811,16 @@ def _ego_row(amap, wi, ox, oy, map_cs, px, py, lx, ly, cells, flags):
     are those of ``x0 + fwd * fx - left * fy`` and ``y0 + fwd * fy + left * fx``. ``cells``
     (int64 scratch of the same length) takes the map cells, computed in a loop of their own
     that the compiler vectorises; the map is read without bounds checks when every sample of
-    the row lies inside it, as it does unless the agent is near the map's edge."""
+    the row lies inside it, as it does unless the agent is near the map's edge. ``map_cs``
+    is a power of two (:func:`egomap_crop` checks), so a product with its inverse is exactly
+    the quotient, and cheaper."""
     M = amap.shape[1]
+    inv_cs = 1.0 / map_cs  # multiplying by it is the division: map_cs is a power of two
     lo = M
     hi = -1
     for m in range(flags.shape[0]):
-        c = int(math.floor((px - lx[m] - ox) / map_cs))
-        r = int(math.floor((py + ly[m] - oy) / map_cs))
+        c = int(math.floor((px - lx[m] - ox) * inv_cs))
+        r = int(math.floor((py + ly[m] - oy) * inv_cs))
         lo = min(lo, min(r, c))
         hi = max(hi, max(r, c))
         cells[m] = r * M + c
@@ -843,10 +846,13 @@ def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
     at twice the resolution, as ``torch.nn.functional.pixel_shuffle`` unpacks them.
 
     The samples are read a row of the crop at a time (the cells' 4 x S samples at one
-    forward offset, then the quarters' 8 x S), their left offsets computed once per call."""
+    forward offset, then the quarters' 8 x S), their left offsets computed once per call.
+    ``map_cs`` must be a power of two (ValueError otherwise; the simulator's is 0.25 m)."""
     S = out.shape[2]
     sub = 4
     quarters = out.shape[1] >= 6
+    if math.frexp(map_cs)[0] != 0.5:
+        raise ValueError("egomap_crop: the map's cell size must be a power of two")
     # forward (row) and left (column) offsets (m) of the samples: a cell's 4 x 4, and
     # each quarter's 4 x 4 (index 2 * sub * a + sub * half + s, half = the quarter's row or column)
     off1 = np.empty((S, sub))
