@@ -441,8 +441,8 @@ class PlexWorlds(_Worlds):
         if cfg.executor_collision_reward:
             ex_r += cfg.executor_collision_reward * collided
         pl_r = progress_reward(d_goal_prev, sim.distance_to_goal[rows], collided, cfg)
-        out.rewards[rows, EXECUTOR] += ex_r.astype(np.float32)
-        out.rewards[rows, PLANNER] += pl_r.astype(np.float32)
+        out.rewards[rows, EXECUTOR] += ex_r  # float32(0 + r) = float32(r)
+        out.rewards[rows, PLANNER] += pl_r
         if cfg.eli:
             self.eli[rows] = eli
         self.collisions[rows] += collided
