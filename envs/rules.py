@@ -299,13 +299,21 @@ class PlexWorlds(_Worlds):
         self.planner_decisions[rows] = 0
 
     # ------------------------------------------------------------------ observations
-    def planner_obs(self, rows) -> dict:
+    def planner_obs(self, rows, out: dict | None = None) -> dict:
+        """The planner's observations in the worlds ``rows``, arrays of len(rows); with ``out``
+        (the same keys, arrays of N), written into its rows ``rows`` instead (the other rows
+        are left as they are) and ``out`` returned."""
         rows = np.asarray(rows, np.int64).reshape(-1)
-        return {
-            "ego_map": self.sim.egomap(rows),
-            "goal": self.goal_vector(rows),
-            "eli": self.eli[rows] if self.cfg.eli else np.zeros((len(rows), ELI_DIM), np.float32),  # a copy
-        }
+        if out is None:
+            return {
+                "ego_map": self.sim.egomap(rows),
+                "goal": self.goal_vector(rows),
+                "eli": self.eli[rows] if self.cfg.eli else np.zeros((len(rows), ELI_DIM), np.float32),  # a copy
+            }
+        self.sim.egomap(rows, out=out["ego_map"])
+        out["goal"][rows] = self.goal_vector(rows)
+        out["eli"][rows] = self.eli[rows] if self.cfg.eli else 0.0
+        return out
 
     def executor_obs(self, rows) -> dict:
         rows = np.asarray(rows, np.int64).reshape(-1)

@@ -182,7 +182,7 @@ def test_crop_needs_a_power_of_two_cell():
     pose = np.zeros((1, 3))
     out = np.zeros((1, 6, 4, 4), np.float32)
     for cs, ok in ((0.25, True), (0.5, True), (0.3, False)):
-        args = (amap, np.full((1, 2), -2.0), cs, pose, 0.5, out, np.zeros(1, np.int64))
+        args = (amap, np.full((1, 2), -2.0), cs, pose, 0.5, out, np.zeros(1, np.int64), np.zeros(1, np.int64))
         if ok:
             K.egomap_crop.serial(*args)
         else:

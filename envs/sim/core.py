@@ -215,15 +215,24 @@ class BatchedSim:
                             np.asarray(targets, np.float64).reshape(self.n, 2), np.asarray(rows, np.int64), dist)
 
     # ---------------------------------------------------------------- queries
-    def egomap(self, rows: np.ndarray | None = None) -> np.ndarray:
+    def egomap(self, rows: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """Planner ego maps (len(rows), 6, 32, 32) float32 in [0, 1] from the noisy pose
-        (channels: :func:`~.kernels.egomap_crop`)."""
+        (channels: :func:`~.kernels.egomap_crop`). With ``out`` (N, 6, 32, 32) float32, world
+        ``r``'s map goes into ``out[r]`` instead (the other rows are left as they are), and
+        ``out`` is returned."""
         if not self.use_egomap:
             raise RuntimeError("this simulator was built with egomap=False")
         rows = np.arange(self.n) if rows is None else np.asarray(rows, np.int64).reshape(-1)
-        out = np.zeros((len(rows), self.ego_channels, self.ego_size, self.ego_size), np.float32)
+        shape = (self.ego_channels, self.ego_size, self.ego_size)
+        if out is None:
+            out = np.empty((len(rows),) + shape, np.float32)
+            slots = np.arange(len(rows))
+        elif out.shape != (self.n,) + shape or out.dtype != np.float32:
+            raise ValueError(f"out must be float32 of shape {(self.n,) + shape}, got {out.dtype} {out.shape}")
+        else:
+            slots = rows
         K.pick(K.egomap_crop, len(rows))(self.amap, self.amap_origin, self.amap_cell, self.est_pose, self.ego_cell,
-                                         out, rows)
+                                         out, rows, slots)
         return out
 
     def polar_to(self, targets: np.ndarray, rows: np.ndarray | None = None, noisy: bool = True) -> np.ndarray:

@@ -830,14 +830,14 @@ def _ego_row(amap, wi, ox, oy, map_cs, px, py, lx, ly, cells, flags):
             flags[m] = grid[cells[m]]
         return
     for m in range(flags.shape[0]):
-        c = int(math.floor((px - lx[m] - ox) / map_cs))
-        r = int(math.floor((py + ly[m] - oy) / map_cs))
+        c = int(math.floor((px - lx[m] - ox) * inv_cs))
+        r = int(math.floor((py + ly[m] - oy) * inv_cs))
         flags[m] = grid[r * M + c] if 0 <= r < M and 0 <= c < M else 0
 
 
 @threaded()
-def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
-    """Crop ``out[k]`` (C, S, S) for world ``rows[k]``: channel 0 obstacles, channel 1
+def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows, slots):
+    """Crop ``out[slots[k]]`` (C, S, S) for world ``rows[k]``: channel 0 obstacles, channel 1
     explored free space; row 0 is ahead of the agent, column 0 to its left. Each cell samples
     4 x 4 points: channel 0 is 1 when at least a quarter of them are obstacles (so a door
     narrower than two cells stays open), channel 1 the fraction that is explored floor. With
@@ -866,6 +866,7 @@ def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
     off2 = off2.reshape(-1)
     for k in prange(rows.shape[0]):
         wi = rows[k]
+        slot = slots[k]
         x0 = est_pose[wi, 0]
         y0 = est_pose[wi, 1]
         th = est_pose[wi, 2]
@@ -894,8 +895,8 @@ def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
                         obs[b] += (v & EGO_OBSTACLE) >> 1
                         free[b] += v == EGO_EXPLORED
             for b in range(S):
-                out[k, 0, a, b] = 1.0 if obs[b] * 4 >= sub * sub else 0.0
-                out[k, 1, a, b] = free[b] * (1.0 / (sub * sub))
+                out[slot, 0, a, b] = 1.0 if obs[b] * 4 >= sub * sub else 0.0
+                out[slot, 1, a, b] = free[b] * (1.0 / (sub * sub))
             if not quarters:
                 continue
             for ha in range(2):
@@ -908,4 +909,4 @@ def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
                             qobs[b] += (flags[b * sub + sb] & EGO_OBSTACLE) >> 1
                 for b in range(S):
                     for hb in range(2):
-                        out[k, 2 + 2 * ha + hb, a, b] = 1.0 if qobs[2 * b + hb] * 4 >= sub * sub else 0.0
+                        out[slot, 2 + 2 * ha + hb, a, b] = 1.0 if qobs[2 * b + hb] * 4 >= sub * sub else 0.0
