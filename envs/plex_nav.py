@@ -179,6 +179,12 @@ class raw_env(OneWorldEnv, AECEnv, EzPickle):
 
 def _unpack(action, agent: str, keys: tuple[str, str]):
     """Check an agent's Dict action and return its two parts, with clear errors."""
+    want = (2,) if agent == "planner" else (128,)
+    if type(action) is dict and action.keys() == set(keys):  # the common case first
+        a, b = action[keys[0]], action[keys[1]]
+        if isinstance(b, np.ndarray) and b.shape == want and isinstance(a, (int, float, np.number, np.ndarray)) \
+                and np.ndim(a) == 0:
+            return a, b
     if action is None:
         raise InvalidAction(f"{agent}: action is None but the {agent} is alive; expected a dict with keys {keys}")
     if not isinstance(action, dict):
@@ -198,7 +204,6 @@ def _unpack(action, agent: str, keys: tuple[str, str]):
             raise InvalidAction(f"{agent}: action {k!r} is None; expected a number or an array")
     if np.ndim(a) != 0:
         raise InvalidAction(f"{agent}: action {keys[0]!r} must be a scalar, got shape {np.shape(a)}")
-    want = (2,) if agent == "planner" else (128,)
     try:
         shape_b = np.shape(b)
     except ValueError:  # ragged nested sequences

@@ -371,11 +371,11 @@ class PlexWorlds(_Worlds):
                 raise InvalidAction("executor: it is the executor's turn; its action needs 'action' and 'eli'")
             act_a, eli_a = self.check_executor_action(_rows_of(action, n, (), "executor", "action")[ex],
                                                       _rows_of(eli, n, (ELI_DIM,), "executor", "eli")[ex])
+        flags = np.zeros((5, n), np.bool_)  # one allocation for the five flag arrays
         out = PlexStep(
             rewards=np.zeros((n, 2), np.float32), acted=np.full(n, -1, np.int8),
-            executor_turn_end=np.zeros(n, np.bool_), executor_stopped=np.zeros(n, np.bool_),
-            executor_reached=np.zeros(n, np.bool_),
-            terminated=np.zeros(n, np.bool_), truncated=np.zeros(n, np.bool_))
+            executor_turn_end=flags[0], executor_stopped=flags[1], executor_reached=flags[2],
+            terminated=flags[3], truncated=flags[4])
         new = self._planner_step(pl, stop_a, sg, out) if len(pl) else pl
         if len(ex):
             self._executor_step(ex, act_a, eli_a, out, new)
