@@ -1,11 +1,11 @@
-"""Benchmarks: ``python -m plex_ma.bench {sim,env,gymvec,geodesic,train,record,adam,order} [options] [--json]``.
+"""Benchmarks: ``python -m plex_ma.bench {sim,env,turns,gymvec,geodesic,train,record,adam,order} [options] [--json]``.
 
 ``train`` times a short training (``--preset``, ``--method``, ``--steps``) end to end and
 reports steps/s, the shares of wall time in simulation, inference and the update, the
 networks' FLOPs per step, this machine's matmul GFLOP/s and the update's efficiency
 (its FLOP/s over that matmul figure).
 
-``sim``, ``env``, ``geodesic`` and ``gymvec``, the environment benches, are in
+``sim``, ``env``, ``turns``, ``geodesic`` and ``gymvec``, the environment benches, are in
 :mod:`plex_ma.bench_envs`, whose docstring describes them (``--help`` shows it here).
 
 ``order`` checks that the order of imports does not change the env's speed. It runs
