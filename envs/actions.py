@@ -28,6 +28,9 @@ def discrete(x, k: int, what: str, shape: tuple = (), names: tuple[str, ...] | N
     the actions' names, ``per`` what each entry belongs to (``"world"``). Floats with whole
     values pass unless ``integers_only`` (gymnasium's ``Discrete`` takes integers only);
     bools, strings, dicts, NaN and fractions never do."""
+    if isinstance(x, np.ndarray) and x.shape == tuple(shape) and x.dtype.kind in "iu" and x.size \
+            and 0 <= np.minimum.reduce(x, None) and np.maximum.reduce(x, None) < k:
+        return x.astype(np.int64, copy=False)  # the common case, before any message is built
     expect = f"{'integers' if shape else 'an integer'} in 0..{k - 1}"
     if names:
         expect += f" ({', '.join(names)})"
@@ -37,9 +40,6 @@ def discrete(x, k: int, what: str, shape: tuple = (), names: tuple[str, ...] | N
     def bad(problem: str) -> InvalidAction:
         return InvalidAction(f"{what} must be {expect}; {problem}")
 
-    if isinstance(x, np.ndarray) and x.shape == tuple(shape) and x.dtype.kind in "iu" and x.size \
-            and 0 <= x.min() and x.max() < k:
-        return x.astype(np.int64, copy=False)  # the common case
     if isinstance(x, (dict, str, bytes)):
         raise bad(f"got a {type(x).__name__}")
     try:
@@ -68,6 +68,10 @@ def discrete(x, k: int, what: str, shape: tuple = (), names: tuple[str, ...] | N
 def real(x, what: str, shape: tuple) -> np.ndarray:
     """``x`` as a float64 array of ``shape`` with every entry finite; ``what`` as in
     :func:`discrete`."""
+    if isinstance(x, np.ndarray) and x.shape == tuple(shape) and x.dtype.kind == "f":
+        a = np.asarray(x, dtype=np.float64)  # the common case: a float array of the right shape
+        if np.isfinite(a).all():
+            return a
     try:
         a = np.asarray(x)
         if np.iscomplexobj(a):
@@ -78,6 +82,6 @@ def real(x, what: str, shape: tuple) -> np.ndarray:
                             f"{' of dtype ' + str(x.dtype) if hasattr(x, 'dtype') else ''}") from None
     if a.shape != tuple(shape):
         raise InvalidAction(f"{what} has shape {a.shape}, expected {tuple(shape)}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise InvalidAction(f"{what} contains NaN or infinite values")
     return a

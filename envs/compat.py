@@ -113,12 +113,13 @@ from __future__ import annotations
 
 import functools
 
+import numba
 import numpy as np
 import supersuit as ss
 from gymnasium import spaces
 from pettingzoo import AECEnv
 
-from .plex_nav import env as native_env
+from .plex_nav import EPISODE_STATE, env as native_env
 from .actions import InvalidAction, discrete
 from .parallel import TurnParallelEnv
 from .rules import ELI_DIM
@@ -218,9 +219,34 @@ def _downsample(img: np.ndarray, size: int) -> np.ndarray:
     r = img.shape[0]
     if r % size == 0:
         k = r // size
+        if k < 8:
+            return _block_mean(img, k)
         return img.reshape(size, k, size, k, img.shape[2]).mean(axis=(1, 3), dtype=np.float32)
     idx = ((np.arange(size) + 0.5) * r / size).astype(np.int64)
     return img[idx][:, idx].astype(np.float32)
+
+
+@numba.njit(cache=True)
+def _block_mean(img, k):
+    """``img.reshape(S, k, S, k, C).mean(axis=(1, 3), dtype=np.float32)`` for k < 8, bit for bit
+    (``tests/test_compat.py``): numpy adds runs that short in order (its pairwise summation
+    starts at 8), each block row's sum in float32, then the rows' sums, and divides by the
+    count in float64. A loop here instead of numpy's buffered strided reduction, which takes
+    several times as long."""
+    s = img.shape[0] // k
+    c = img.shape[2]
+    out = np.empty((s, s, c), np.float32)
+    for a in range(s):
+        for b in range(s):
+            for ch in range(c):
+                total = np.float32(0.0)
+                for i in range(k):
+                    row = np.float32(0.0)
+                    for j in range(k):
+                        row += np.float32(img[a * k + i, b * k + j, ch])
+                    total += row
+                out[a, b, ch] = np.float32(np.float64(total) / (k * k))
+    return out
 
 
 def _flat_obs(obs, obs_space, agent, image_size: int, eli: bool) -> np.ndarray:
@@ -278,6 +304,7 @@ class CompatEnv(AECEnv):
     def __init__(self, chain: AECEnv, build_args: dict, mask: str):
         super().__init__()
         self.env = chain
+        self._native = chain.unwrapped
         self._build_args = dict(build_args)
         self.mask = mask
         agents = chain.possible_agents
@@ -299,11 +326,22 @@ class CompatEnv(AECEnv):
                                 for a in agents}
 
     def __getattr__(self, name: str):
-        # the episode's state (agents, agent_selection, rewards, terminations, truncations,
-        # _cumulative_rewards) and the native env's attributes, read through
+        # The episode's state (agents, agent_selection, rewards, ...) is the native env's:
+        # no wrapper of the chain keeps its own, so it is read there at once instead of
+        # through the chain's five __getattr__ levels (a turn reads it about ten times).
+        if name in EPISODE_STATE:
+            return self._state(name)
+        # the native env's other attributes, read through
         if name == "env" or (name.startswith("_") and name != "_cumulative_rewards"):
             raise AttributeError(name)
         return getattr(self.env, name)
+
+    def _state(self, name: str):
+        """The native env's ``name``; before ``reset`` the AttributeError of PettingZoo's
+        order enforcing, as the chain gives."""
+        if not self.env._has_reset and name != "_cumulative_rewards":
+            raise AttributeError(f"{name} cannot be accessed before reset")
+        return getattr(self._native, name)
 
     def __reduce__(self):
         return (functools.partial(compat_env, **self._build_args), ())
@@ -333,7 +371,7 @@ class CompatEnv(AECEnv):
     @property
     def infos(self) -> dict:
         """The native infos; with ``mask="info"`` each also holds the agent's ``action_mask``."""
-        infos = self.env.infos
+        infos = self._state("infos")
         if self.mask != "info":
             return infos
         return {a: {**info, "action_mask": self._masks[a].copy()} for a, info in infos.items()}

@@ -16,6 +16,10 @@ from .spaces import executor_action_space, executor_observation_space, planner_a
 from .viewer import HumanViewer
 
 AGENTS = ["planner", "executor"]
+# The attributes that hold the episode's state, which the wrappers read through (a turn
+# of agent_iter, last() and step reads them about ten times).
+EPISODE_STATE = frozenset({"agents", "agent_selection", "rewards", "terminations", "truncations",
+                           "_cumulative_rewards"})
 
 
 def env(**kwargs) -> AECEnv:
@@ -34,6 +38,13 @@ def env(**kwargs) -> AECEnv:
 class _OrderEnforcing(wrappers.OrderEnforcingWrapper):
     """PettingZoo's order enforcing, except that a step after the episode ended raises
     :class:`InvalidAction` (as ``raw_env`` does) instead of only logging a warning."""
+
+    def __getattr__(self, name: str):
+        # after the reset, the episode's state straight from the env, without the
+        # before-reset checks of every attribute
+        if name in EPISODE_STATE and self._has_reset:
+            return getattr(self.env, name)
+        return super().__getattr__(name)
 
     def step(self, action) -> None:
         if self._has_reset and not self.agents:
@@ -115,12 +126,10 @@ class raw_env(OneWorldEnv, AECEnv, EzPickle):
         w = self.worlds
         if agent == "planner":
             stop, subgoal = _unpack(action, agent, ("stop", "subgoal"))
-            out = w.step(stop=np.reshape(stop, (1,)) if np.ndim(stop) == 0 else stop,
-                         subgoal=np.asarray(subgoal)[None] if np.ndim(subgoal) == 1 else subgoal)
+            out = w.step(stop=np.reshape(stop, (1,)), subgoal=np.asarray(subgoal)[None])  # _unpack checked the shapes
         else:
             act, eli = _unpack(action, agent, ("action", "eli"))
-            out = w.step(action=np.reshape(act, (1,)) if np.ndim(act) == 0 else act,
-                         eli=np.asarray(eli)[None] if np.ndim(eli) == 1 else eli)
+            out = w.step(action=np.reshape(act, (1,)), eli=np.asarray(eli)[None])
         self._cumulative_rewards[agent] = 0.0
         self.rewards = {"planner": float(out.rewards[0, PLANNER]), "executor": float(out.rewards[0, EXECUTOR])}
         self._accumulate_rewards()
@@ -170,6 +179,12 @@ class raw_env(OneWorldEnv, AECEnv, EzPickle):
 
 def _unpack(action, agent: str, keys: tuple[str, str]):
     """Check an agent's Dict action and return its two parts, with clear errors."""
+    want = (2,) if agent == "planner" else (128,)
+    if type(action) is dict and action.keys() == set(keys):  # the common case first
+        a, b = action[keys[0]], action[keys[1]]
+        if isinstance(b, np.ndarray) and b.shape == want and isinstance(a, (int, float, np.number, np.ndarray)) \
+                and np.ndim(a) == 0:
+            return a, b
     if action is None:
         raise InvalidAction(f"{agent}: action is None but the {agent} is alive; expected a dict with keys {keys}")
     if not isinstance(action, dict):
@@ -189,7 +204,6 @@ def _unpack(action, agent: str, keys: tuple[str, str]):
             raise InvalidAction(f"{agent}: action {k!r} is None; expected a number or an array")
     if np.ndim(a) != 0:
         raise InvalidAction(f"{agent}: action {keys[0]!r} must be a scalar, got shape {np.shape(a)}")
-    want = (2,) if agent == "planner" else (128,)
     try:
         shape_b = np.shape(b)
     except ValueError:  # ragged nested sequences

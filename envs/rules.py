@@ -25,11 +25,9 @@ planner     geodesic progress towards the end goal + slack + collision
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, fields
 
-import numba
 import numpy as np
 
 from .actions import InvalidAction, discrete, real
@@ -135,26 +133,6 @@ def progress_reward(d_prev: np.ndarray, d_new: np.ndarray, collided: np.ndarray,
     return (d_prev - d_new) + cfg.slack_reward + cfg.collision_reward * collided
 
 
-def _serial_for_one_world(method):
-    """Run ``method`` with one numba thread when there is a single world (the AEC and gym
-    envs). One world leaves the kernels nothing to share out, so worker threads would only
-    add their wake-ups (numba's OpenMP threads spin, which slows single-world steps badly
-    beside other busy processes)."""
-
-    @functools.wraps(method)
-    def run(self, *args, **kwargs):
-        if self.n != 1 or numba.get_num_threads() == 1:
-            return method(self, *args, **kwargs)
-        prev = numba.get_num_threads()
-        numba.set_num_threads(1)
-        try:
-            return method(self, *args, **kwargs)
-        finally:
-            numba.set_num_threads(prev)
-
-    return run
-
-
 class OneWorldEnv:
     """The episode and scene properties of an env over one world (``plex_nav_v0``,
     ``plex_ma/PointNav-v0``); the env sets ``self.worlds``."""
@@ -230,7 +208,6 @@ class _Worlds:
         return sample_episode(self.bank, int(rng.integers(len(self.bank))), rng, self.geo,
                               max_geodesic=self.max_geodesic)
 
-    @_serial_for_one_world
     def reset_rows(self, rows, episodes: list[Episode] | None = None) -> None:
         """Start new episodes in ``rows`` (given ones, or the next sampled/fixed ones)."""
         rows = np.asarray(rows, np.int64).reshape(-1)
@@ -309,7 +286,6 @@ class PlexWorlds(_Worlds):
         self.eli = np.zeros((n, ELI_DIM), np.float32)  # last ELI the executor sent
         self.planner_decisions = np.zeros(n, np.int64)
 
-    @_serial_for_one_world
     def reset_rows(self, rows, episodes=None) -> None:
         super().reset_rows(rows, episodes)
         rows = np.asarray(rows, np.int64).reshape(-1)
@@ -323,21 +299,27 @@ class PlexWorlds(_Worlds):
         self.planner_decisions[rows] = 0
 
     # ------------------------------------------------------------------ observations
-    @_serial_for_one_world
-    def planner_obs(self, rows) -> dict:
+    def planner_obs(self, rows, out: dict | None = None) -> dict:
+        """The planner's observations in the worlds ``rows``, arrays of len(rows); with ``out``
+        (the same keys, arrays of N), written into its rows ``rows`` instead (the other rows
+        are left as they are) and ``out`` returned."""
         rows = np.asarray(rows, np.int64).reshape(-1)
-        return {
-            "ego_map": self.sim.egomap(rows),
-            "goal": self.goal_vector(rows),
-            "eli": self.eli[rows].copy() if self.cfg.eli else np.zeros((len(rows), ELI_DIM), np.float32),
-        }
+        if out is None:
+            return {
+                "ego_map": self.sim.egomap(rows),
+                "goal": self.goal_vector(rows),
+                "eli": self.eli[rows] if self.cfg.eli else np.zeros((len(rows), ELI_DIM), np.float32),  # a copy
+            }
+        self.sim.egomap(rows, out=out["ego_map"])
+        out["goal"][rows] = self.goal_vector(rows)
+        out["eli"][rows] = self.eli[rows] if self.cfg.eli else 0.0
+        return out
 
-    @_serial_for_one_world
     def executor_obs(self, rows) -> dict:
         rows = np.asarray(rows, np.int64).reshape(-1)
         return {
-            "rgb": self.sim.rgb[rows].copy(),
-            "depth": self.sim.depth[rows].copy(),
+            "rgb": self.sim.rgb[rows],  # indexing by an array copies
+            "depth": self.sim.depth[rows],
             "subgoal": self.sim.polar_to(self.subgoal[rows], rows),
         }
 
@@ -364,7 +346,6 @@ class PlexWorlds(_Worlds):
         return a, e
 
     # ------------------------------------------------------------------ stepping
-    @_serial_for_one_world
     def step(self, stop=None, subgoal=None, action=None, eli=None) -> PlexStep:
         """One action for every world that is not done: the planner's (``stop``, ``subgoal``)
         where it is the planner's turn, the executor's (``action``, ``eli``) elsewhere.
@@ -372,8 +353,8 @@ class PlexWorlds(_Worlds):
         Actions are validated before anything changes."""
         n = self.n
         live = ~self.done
-        pl = np.flatnonzero(live & (self.turn == PLANNER))
-        ex = np.flatnonzero(live & (self.turn == EXECUTOR))
+        pl = np.nonzero(live & (self.turn == PLANNER))[0]
+        ex = np.nonzero(live & (self.turn == EXECUTOR))[0]
         # A batched caller may move one agent only: worlds of the agent it gave no action
         # for wait. With one world (the AEC env) a missing action is an error.
         if n > 1 and stop is None and subgoal is None and action is not None:
@@ -390,11 +371,11 @@ class PlexWorlds(_Worlds):
                 raise InvalidAction("executor: it is the executor's turn; its action needs 'action' and 'eli'")
             act_a, eli_a = self.check_executor_action(_rows_of(action, n, (), "executor", "action")[ex],
                                                       _rows_of(eli, n, (ELI_DIM,), "executor", "eli")[ex])
+        flags = np.zeros((5, n), np.bool_)  # one allocation for the five flag arrays
         out = PlexStep(
             rewards=np.zeros((n, 2), np.float32), acted=np.full(n, -1, np.int8),
-            executor_turn_end=np.zeros(n, np.bool_), executor_stopped=np.zeros(n, np.bool_),
-            executor_reached=np.zeros(n, np.bool_),
-            terminated=np.zeros(n, np.bool_), truncated=np.zeros(n, np.bool_))
+            executor_turn_end=flags[0], executor_stopped=flags[1], executor_reached=flags[2],
+            terminated=flags[3], truncated=flags[4])
         new = self._planner_step(pl, stop_a, sg, out) if len(pl) else pl
         if len(ex):
             self._executor_step(ex, act_a, eli_a, out, new)
@@ -434,7 +415,7 @@ class PlexWorlds(_Worlds):
         if not len(rows):
             return
         d = self.sim.distance_to(self.subgoal, rows)[rows]
-        if not np.all(np.isfinite(d)):
+        if not np.isfinite(d).all():
             bad = rows[~np.isfinite(d)]
             raise RuntimeError(f"sub-goal unreachable in worlds {bad.tolist()} after snapping; this is a bug")
         self.subgoal_dist[rows] = d
@@ -448,13 +429,13 @@ class PlexWorlds(_Worlds):
         acts[rows] = action
         active = np.zeros(self.n, np.bool_)
         active[rows] = True
-        d_goal_prev = sim.distance_to_goal[rows].copy()
-        d_sub_prev = self.subgoal_dist[rows].copy()
-        pos_prev = sim.pos[rows].copy()
+        d_goal_prev = sim.distance_to_goal[rows]  # indexing by an array copies
+        d_sub_prev = self.subgoal_dist[rows]
+        pos_prev = sim.pos[rows]
         collided = sim.step(acts, active)[rows]
         # The sub-goal is fixed during the turn, so the geodesic distance to it changes only
         # where the agent moved; turns, STOP and blocked moves keep the previous value.
-        moved = np.any(sim.pos[rows] != pos_prev, axis=1)
+        moved = (sim.pos[rows] != pos_prev).any(axis=1)
         self._measure_subgoals(new_subgoals, rows[moved])
         d_sub = self.subgoal_dist[rows]
         stopped = action == STOP
@@ -463,11 +444,13 @@ class PlexWorlds(_Worlds):
         # within the radius would pay the bonus for a STOP on the spot.
         reached = stopped & (d_sub < cfg.subgoal_radius) & (self.subgoal_dist0[rows] >= cfg.subgoal_radius)
         ex_r += cfg.subgoal_reward * reached
-        ex_r += cfg.executor_stop_penalty * (stopped & (d_sub >= cfg.subgoal_radius))
-        ex_r += cfg.executor_collision_reward * collided
+        if cfg.executor_stop_penalty:  # the two optional terms, 0 by default
+            ex_r += cfg.executor_stop_penalty * (stopped & (d_sub >= cfg.subgoal_radius))
+        if cfg.executor_collision_reward:
+            ex_r += cfg.executor_collision_reward * collided
         pl_r = progress_reward(d_goal_prev, sim.distance_to_goal[rows], collided, cfg)
-        out.rewards[rows, EXECUTOR] += ex_r.astype(np.float32)
-        out.rewards[rows, PLANNER] += pl_r.astype(np.float32)
+        out.rewards[rows, EXECUTOR] += ex_r  # float32(0 + r) = float32(r)
+        out.rewards[rows, PLANNER] += pl_r
         if cfg.eli:
             self.eli[rows] = eli
         self.collisions[rows] += collided
@@ -495,14 +478,12 @@ class PointNavWorlds(_Worlds):
     def __init__(self, cfg: NavConfig, num_worlds: int = 1, seed: int | None = None, egomap: bool = False):
         super().__init__(cfg, num_worlds, seed, egomap=egomap)
 
-    @_serial_for_one_world
     def obs(self, rows) -> dict:
         rows = np.asarray(rows, np.int64).reshape(-1)
-        return {"rgb": self.sim.rgb[rows].copy(), "depth": self.sim.depth[rows].copy(),
+        return {"rgb": self.sim.rgb[rows], "depth": self.sim.depth[rows],  # indexing by an array copies
                 "pointgoal": self.goal_vector(rows),
                 **({"ego_map": self.sim.egomap(rows)} if self.sim.use_egomap else {})}
 
-    @_serial_for_one_world
     def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Apply one action per live world. Returns (rewards, terminated, truncated)."""
         cfg = self.cfg

@@ -61,8 +61,8 @@ class PlexVectorEnv:
         self.executor_observation_space = executor_observation_space(self.config)
         self.planner_action_space = planner_action_space(self.config)
         self.executor_action_space = executor_action_space(self.config)
-        self._zero_planner = {k: np.zeros((self.num_envs,) + s.shape, s.dtype)
-                              for k, s in self.planner_observation_space.spaces.items()}
+        self._planner_shapes = {k: ((self.num_envs,) + s.shape, s.dtype)
+                                for k, s in self.planner_observation_space.spaces.items()}
 
     def reset(self, seed: int | None = None) -> tuple[np.ndarray, dict, dict]:
         """Reset every world. Returns (turn, planner_obs, executor_obs)."""
@@ -73,10 +73,9 @@ class PlexVectorEnv:
 
     def _planner_obs(self) -> dict:
         rows = np.flatnonzero(self.worlds.turn == PLANNER)
-        out = {k: np.zeros_like(v) for k, v in self._zero_planner.items()}
+        out = {k: np.zeros(shape, dtype) for k, (shape, dtype) in self._planner_shapes.items()}
         if len(rows):
-            for k, v in self.worlds.planner_obs(rows).items():
-                out[k][rows] = v
+            self.worlds.planner_obs(rows, out=out)
         return out
 
     def _executor_obs(self) -> dict:
@@ -96,7 +95,7 @@ class PlexVectorEnv:
         infos = [w.info(int(i)) for i in ended]
         final = final_pose = None
         if len(ended):
-            final = {k: v.copy() for k, v in w.executor_obs(ended).items()}
+            final = w.executor_obs(ended)  # copies
             final_pose = w.pose(ended)
             w.reset_rows(ended)
         return PlexVecStep(turn=w.turn.copy(), planner_obs=self._planner_obs(), executor_obs=self._executor_obs(),

@@ -1,11 +1,11 @@
-"""Benchmarks: ``python -m plex_ma.bench {sim,env,gymvec,geodesic,train,record,adam,order} [options] [--json]``.
+"""Benchmarks: ``python -m plex_ma.bench {sim,env,turns,gymvec,geodesic,train,record,adam,order} [options] [--json]``.
 
 ``train`` times a short training (``--preset``, ``--method``, ``--steps``) end to end and
 reports steps/s, the shares of wall time in simulation, inference and the update, the
 networks' FLOPs per step, this machine's matmul GFLOP/s and the update's efficiency
 (its FLOP/s over that matmul figure).
 
-``sim``, ``env``, ``geodesic`` and ``gymvec``, the environment benches, are in
+``sim``, ``env``, ``turns``, ``geodesic`` and ``gymvec``, the environment benches, are in
 :mod:`plex_ma.bench_envs`, whose docstring describes them (``--help`` shows it here).
 
 ``order`` checks that the order of imports does not change the env's speed. It runs
@@ -58,7 +58,7 @@ import torch
 import plex_ma
 import plex_ma.viz as vr
 from plex_ma import bench_envs
-from plex_ma.bench_envs import bench_env, bench_geodesic, bench_gymvec, bench_sim, machine
+from plex_ma.bench_envs import bench_env, bench_geodesic, bench_gymvec, bench_sim, bench_turns, machine
 from plex_ma.cli import Parser, fail, integer, probability
 from plex_ma.config import CNN_MIN_RESOLUTION, DEVICE_HELP, ENV_FIELDS, TrainConfig, preset_defaults, replace, setting, validate
 from plex_ma.envs.sim import EpisodeFileError, SceneError
@@ -323,6 +323,9 @@ def _run(p: argparse.ArgumentParser, a: argparse.Namespace) -> dict:
     elif a.what == "gymvec":
         out = bench_gymvec(a.num_envs, a.resolution, a.steps, a.seed, a.scenes, a.num_scenes, rounds=a.rounds,
                            warmup=a.warmup, stop_prob=a.stop_prob, max_steps=a.max_steps)
+    elif a.what == "turns":
+        out = bench_turns(a.resolution, a.turns, a.seed, a.scenes, a.num_scenes, rounds=a.rounds, warmup=a.warmup,
+                          planner_stop_prob=a.planner_stop_prob, executor_stop_prob=a.executor_stop_prob)
     elif a.what == "geodesic":
         out = bench_geodesic(a.queries, a.seed, a.scenes, a.num_scenes, astar_queries=a.astar_queries)
     elif a.what == "order":
@@ -373,6 +376,19 @@ def main(argv: list[str] | None = None) -> None:
     pe.add_argument("--aec-turns", type=positive, default=2000, help="AEC turns to time")
     pe.add_argument("--planner-stop-prob", type=probability, default=0.01, help="chance that a planner action is STOP")
     pe.add_argument("--executor-stop-prob", type=probability, default=0.1, help="chance that an executor action is STOP")
+    h = "one world: env() and compat_env() turns/s against the raw one-world simulator, alternating"
+    pn = sub.add_parser("turns", help=h, description=h)
+    pn.add_argument("--resolution", type=integer(MIN_RESOLUTION, MAX_RESOLUTION), default=128,
+                    help="square image size in pixels")
+    pn.add_argument("--turns", type=positive, default=1000, help="turns (simulator steps) of each per round")
+    pn.add_argument("--rounds", type=positive, default=5, help="rounds; each times all three, first one rotating")
+    pn.add_argument("--warmup", type=at_least_0, default=100, help="untimed turns of each before timing")
+    pn.add_argument("--seed", type=at_least_0, default=0)
+    pn.add_argument("--scenes", default="procgen", help="scene source")
+    pn.add_argument("--num-scenes", type=positive, default=None, help="training scenes (default: all of the source's)")
+    pn.add_argument("--planner-stop-prob", type=probability, default=0.01, help="chance that a planner action is STOP")
+    pn.add_argument("--executor-stop-prob", type=probability, default=0.1, help="chance that an executor action is STOP")
+    pn.add_argument("--json", action="store_true", help="print one JSON object")
     h = "make_vec's batched PointNav vector env against SyncVectorEnv of single envs (default: 16 worlds at 64 px)"
     pv = sub.add_parser("gymvec", help=h, description=h)
     common(pv, 300, "vector steps to time (each env gets as many)")

@@ -1,4 +1,4 @@
-"""The environment benchmarks of ``python -m plex_ma.bench``: ``sim``, ``env``, ``geodesic`` and ``gymvec``.
+"""The environment benchmarks of ``python -m plex_ma.bench``: ``sim``, ``env``, ``turns``, ``geodesic`` and ``gymvec``.
 
 ``sim`` steps the raw batched simulator with random movement actions (no STOP, so
 episodes run to 500 steps and reset): every step renders RGB-D, updates the ego maps and
@@ -31,6 +31,16 @@ stops with a small probability, so episodes are long):
   ``ratio_cpu`` is the same ratio per second of process CPU time (both threads), which
   a virtual machine's steal time does not inflate.
 
+``turns`` measures what an outside trainer that steps one world turn by turn gets (RLlib,
+SB3 through SuperSuit, Tianshou, TorchRL's PettingZooWrapper): ``plex_nav_v0.env()`` and
+``compat_env()``, each with one world at ``--resolution``, driven as ``env``'s AEC figure is
+(random valid actions; the compat planner picks a random sub-goal of its grid), against
+the raw one-world simulator driven as ``sim`` drives it, in one process. Each of
+``--rounds`` rounds times ``--turns`` turns of each env and as many simulator steps, the
+first of the three rotating from round to round; ``aec_ratio`` and ``compat_ratio`` are
+the medians over the rounds of turns/s over the simulator's steps/s (``_cpu``: per second
+of process CPU time). A turn of either agent counts, as a simulator step does.
+
 ``geodesic`` times the sub-goal distance queries on one thread (``--queries`` random
 points and sub-goals up to 4 m away, snapped as the env snaps them): the corner graphs the
 env uses against A* on the same queries, with the largest difference between the two.
@@ -61,6 +71,7 @@ import numba
 import numpy as np
 
 from plex_ma.envs import plex_nav_v0
+from plex_ma.envs.compat import CompatEnv
 from plex_ma.envs.sim import BatchedSim, Geodesics, scene_bank
 from plex_ma.envs.sim.episodes import sample_episode
 from plex_ma.envs.vector import EXECUTOR, PlexVectorEnv
@@ -177,6 +188,82 @@ def bench_geodesic(queries: int, seed: int, scenes: str = "procgen", num_scenes:
             "graph_build_seconds": build, "machine": machine()}
 
 
+def _turns(env, rng: np.random.Generator, planner_stop_prob: float, executor_stop_prob: float):
+    """``run(n)``: ``n`` turns of ``env`` (``plex_nav_v0.env()`` or ``compat_env()``) driven
+    the PettingZoo way (``agent_iter``, ``last()``, ``step``) with random valid actions, from a
+    reset with a fresh seed and again after each episode; it returns the episodes begun. The
+    planner stops with ``planner_stop_prob`` (compat: else a random sub-goal of its grid),
+    the executor chooses STOP with ``executor_stop_prob``, else a random move."""
+    compat = isinstance(env.unwrapped, CompatEnv)
+    rho_max = env.unwrapped.config.rho_max
+    planner_actions = env.action_space("planner").n if compat else 0
+    zero_eli = np.zeros(128, np.float32)
+
+    def action(agent: str):
+        if agent == "planner":
+            stop = rng.random() < planner_stop_prob
+            if compat:
+                return 0 if stop else int(rng.integers(1, planner_actions))
+            return {"stop": int(stop),
+                    "subgoal": np.array([rng.uniform(0, rho_max), rng.uniform(-np.pi, np.pi)], np.float32)}
+        a = 0 if rng.random() < executor_stop_prob else int(rng.integers(1, 4))
+        return a if compat else {"action": a, "eli": zero_eli}
+
+    def run(n: int) -> int:
+        episodes = 0
+        done = 0
+        while done < n:
+            env.reset(seed=int(rng.integers(2**31)))
+            episodes += 1
+            for agent in env.agent_iter(n - done):
+                _, _, term, trunc, _ = env.last()
+                env.step(None if term or trunc else action(agent))
+                done += 1
+        return episodes
+
+    return run
+
+
+def bench_turns(resolution: int = 128, turns: int = 1000, seed: int = 0, scenes: str = "procgen",
+                num_scenes: int | None = None, rounds: int = 5, warmup: int = 100, planner_stop_prob: float = 0.01,
+                executor_stop_prob: float = 0.1) -> dict:
+    """One world, one process: ``plex_nav_v0.env()`` and ``compat_env()`` turns/s against the
+    raw one-world simulator's steps/s, in alternating rounds (see the module docstring)."""
+    rng = np.random.default_rng(seed)
+    cfg = dict(resolution=resolution, scenes=scenes, num_scenes=num_scenes)
+    runs = {}
+    for name, env in (("aec", plex_nav_v0.env(**cfg)), ("compat", plex_nav_v0.compat_env(**cfg))):
+        env.reset(seed=seed)
+        env.unwrapped.worlds.sim.prepare_geodesics()  # as in a long run (see bench env)
+        runs[name] = _turns(env, rng, planner_stop_prob, executor_stop_prob)
+    raw = _RawSim(1, resolution, seed, scenes, num_scenes, steady=True)
+    for run in runs.values():
+        run(warmup)
+    raw.run(raw.actions(warmup))
+    names = ("sim", "aec", "compat")
+    rate = {name: [] for name in names}
+    rate_cpu = {name: [] for name in names}
+    for k in range(rounds):
+        for name in names[k % 3:] + names[:k % 3]:  # who goes first rotates
+            acts = raw.actions(turns) if name == "sim" else None  # drawn before timing
+            t, c = time.perf_counter(), time.process_time()
+            if name == "sim":
+                raw.run(acts)
+            else:
+                runs[name](turns)
+            rate[name].append(turns / (time.perf_counter() - t))
+            rate_cpu[name].append(turns / max(time.process_time() - c, 1e-9))
+    out = {"benchmark": "turns", "resolution": resolution, "turns": turns, "rounds": rounds,
+           "planner_stop_prob": planner_stop_prob, "executor_stop_prob": executor_stop_prob}
+    for name, what in zip(names, ("sim_steps", "aec_turns", "compat_turns")):
+        out[f"{what}_per_second"] = float(np.median(rate[name]))
+    for name in ("aec", "compat"):
+        out[f"{name}_ratio"] = float(np.median(np.array(rate[name]) / rate["sim"]))
+        out[f"{name}_ratio_cpu"] = float(np.median(np.array(rate_cpu[name]) / rate_cpu["sim"]))
+    out["machine"] = machine()
+    return out
+
+
 def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str = "procgen",
               aec_turns: int = 2000, planner_stop_prob: float = 0.01, executor_stop_prob: float = 0.1,
               num_scenes: int | None = None, rounds: int = 10, warmup: int = 20) -> dict:
@@ -189,26 +276,7 @@ def bench_env(num_envs: int, resolution: int, steps: int, seed: int, scenes: str
     # One AEC env, driven as a PettingZoo user would.
     env = plex_nav_v0.env(**cfg)
     rho_max = env.unwrapped.config.rho_max
-    zero_eli = np.zeros(128, np.float32)
-
-    def aec_action(agent):
-        if agent == "planner":
-            return {"stop": int(rng.random() < planner_stop_prob),
-                    "subgoal": np.array([rng.uniform(0, rho_max), rng.uniform(-np.pi, np.pi)], np.float32)}
-        a = 0 if rng.random() < executor_stop_prob else int(rng.integers(1, 4))
-        return {"action": a, "eli": zero_eli}
-
-    def run_aec(n: int) -> int:
-        episodes = 0
-        done = 0
-        while done < n:
-            env.reset(seed=int(rng.integers(2**31)))
-            episodes += 1
-            for agent in env.agent_iter(n - done):
-                _, _, term, trunc, _ = env.last()
-                env.step(None if term or trunc else aec_action(agent))
-                done += 1
-        return episodes
+    run_aec = _turns(env, rng, planner_stop_prob, executor_stop_prob)
 
     run_aec(50)  # load the compiled kernels
     t0 = time.perf_counter()

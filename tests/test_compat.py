@@ -373,3 +373,23 @@ def test_frame_skip_repeats_executor_actions_and_replays_the_planner():
     # (and the executor's STOP) until its skip count runs out: the documented caveat.
     env.step({"action": 0, "eli": np.zeros(128, np.float32)})
     assert w.planner_decisions[0] > 1
+
+
+@pytest.mark.parametrize("resolution, size", [(128, 32), (64, 32), (96, 32), (160, 32), (32, 32), (256, 32), (70, 10)])
+def test_downsample_is_numpys_block_mean_bit_for_bit(resolution, size):
+    """The compiled block mean gives numpy's float32 mean exactly (the flat executor
+    observation's bits do not depend on which of the two computed it); sizes that do not
+    divide the resolution take the nearest pixel."""
+    rng = np.random.default_rng(resolution)
+    for img in (rng.integers(0, 256, (resolution, resolution, 3), dtype=np.uint8),
+                rng.random((resolution, resolution, 1), dtype=np.float32),
+                (rng.random((resolution, resolution, 1)) ** 3).astype(np.float32)):
+        got = compat._downsample(img, size)
+        if resolution % size:
+            idx = ((np.arange(size) + 0.5) * resolution / size).astype(np.int64)
+            want = img[idx][:, idx].astype(np.float32)
+        else:
+            k = resolution // size
+            want = img.reshape(size, k, size, k, img.shape[2]).mean(axis=(1, 3), dtype=np.float32)
+        assert got.dtype == np.float32 and got.shape == (size, size, img.shape[2])
+        np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))

@@ -171,3 +171,20 @@ def test_a_door_stays_open_on_the_map(degrees, offset):
         assert any(m[0, r, ego_cell(0.0, y - offset)[1]] == 1.0 for r in wall)
     doorway = range(ego_cell(0.0, 0.4 - offset)[1], ego_cell(0.0, -0.4 - offset)[1] + 1)
     assert any(all(m[0, r, col] == 0.0 for r in wall) for col in doorway)
+
+
+def test_crop_needs_a_power_of_two_cell():
+    """The crop multiplies by the inverse of the map's cell size, which is its division only
+    for a power of two; another size is refused rather than cropped slightly differently."""
+    from plex_ma.envs.sim import kernels as K
+
+    amap = np.zeros((1, 16, 16), np.uint8)
+    pose = np.zeros((1, 3))
+    out = np.zeros((1, 6, 4, 4), np.float32)
+    for cs, ok in ((0.25, True), (0.5, True), (0.3, False)):
+        args = (amap, np.full((1, 2), -2.0), cs, pose, 0.5, out, np.zeros(1, np.int64), np.zeros(1, np.int64))
+        if ok:
+            K.egomap_crop.serial(*args)
+        else:
+            with pytest.raises(ValueError, match="power of two"):
+                K.egomap_crop.serial(*args)

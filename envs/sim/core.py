@@ -163,7 +163,7 @@ class BatchedSim:
         actions = np.asarray(actions, np.int64)
         if actions.shape != (self.n,):
             raise ValueError(f"expected {self.n} actions, got shape {actions.shape}")
-        if np.any((actions < 0) | (actions > 3)):
+        if ((actions < 0) | (actions > 3)).any():
             raise ValueError(f"actions must be in 0..3, got {actions.tolist()}")
         active = self._all if active is None else np.asarray(active, np.bool_)
         acts = np.where(active, actions, STOP)
@@ -177,7 +177,7 @@ class BatchedSim:
         # The image is a function of the pose alone: a world that did not move (STOP, a
         # move blocked at once) keeps its image, and only its GPS+compass reading and ego
         # map are refreshed.
-        moved = active & (np.any(self.pos != old, axis=1) | (self.heading != old_heading))
+        moved = active & ((self.pos != old).any(axis=1) | (self.heading != old_heading))
         self._sense(active, moved)
         return self.collided
 
@@ -203,7 +203,7 @@ class BatchedSim:
         d = np.empty(self.n)
         K.field_lookup_batch(b.nav, b.off, b.h, b.w, b.ox, b.oy, b.cell_size, self.scene_idx, self.fields, self.pos, d)
         self.distance_to_goal[active] = d[active]
-        self.shorten_to_straight_line(self.goal, np.flatnonzero(active), self.distance_to_goal)
+        self.shorten_to_straight_line(self.goal, np.nonzero(active)[0], self.distance_to_goal)
 
     def shorten_to_straight_line(self, targets: np.ndarray, rows: np.ndarray, dist: np.ndarray) -> None:
         """Lower ``dist[rows]`` (grid geodesics to ``targets``) to the straight-line distance
@@ -215,15 +215,24 @@ class BatchedSim:
                             np.asarray(targets, np.float64).reshape(self.n, 2), np.asarray(rows, np.int64), dist)
 
     # ---------------------------------------------------------------- queries
-    def egomap(self, rows: np.ndarray | None = None) -> np.ndarray:
+    def egomap(self, rows: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """Planner ego maps (len(rows), 6, 32, 32) float32 in [0, 1] from the noisy pose
-        (channels: :func:`~.kernels.egomap_crop`)."""
+        (channels: :func:`~.kernels.egomap_crop`). With ``out`` (N, 6, 32, 32) float32, world
+        ``r``'s map goes into ``out[r]`` instead (the other rows are left as they are), and
+        ``out`` is returned."""
         if not self.use_egomap:
             raise RuntimeError("this simulator was built with egomap=False")
         rows = np.arange(self.n) if rows is None else np.asarray(rows, np.int64).reshape(-1)
-        out = np.zeros((len(rows), self.ego_channels, self.ego_size, self.ego_size), np.float32)
+        shape = (self.ego_channels, self.ego_size, self.ego_size)
+        if out is None:
+            out = np.empty((len(rows),) + shape, np.float32)
+            slots = np.arange(len(rows))
+        elif out.shape != (self.n,) + shape or out.dtype != np.float32:
+            raise ValueError(f"out must be float32 of shape {(self.n,) + shape}, got {out.dtype} {out.shape}")
+        else:
+            slots = rows
         K.pick(K.egomap_crop, len(rows))(self.amap, self.amap_origin, self.amap_cell, self.est_pose, self.ego_cell,
-                                         out, rows)
+                                         out, rows, slots)
         return out
 
     def polar_to(self, targets: np.ndarray, rows: np.ndarray | None = None, noisy: bool = True) -> np.ndarray:
@@ -232,8 +241,10 @@ class BatchedSim:
         pose = self.est_pose[rows] if noisy else np.concatenate([self.pos[rows], self.heading[rows, None]], 1)
         d = np.asarray(targets, np.float64).reshape(-1, 2) - pose[:, :2]
         dist = np.hypot(d[:, 0], d[:, 1])
-        ang = wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2])
-        return np.stack([dist, ang], 1).astype(np.float32)
+        out = np.empty((len(rows), 2), np.float32)
+        out[:, 0] = dist
+        out[:, 1] = wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - pose[:, 2])
+        return out
 
     def distance_to(self, targets: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """Geodesic distance from the agent of each world ``r`` in ``rows`` to the point

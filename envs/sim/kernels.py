@@ -804,61 +804,109 @@ def egomap_update(depth, est_pose, map_origin, amap, map_cs, stride, hfov, max_d
 
 
 @njit(cache=True, inline="always")
-def _ego_sample(amap, wi, map_origin, map_cs, x0, y0, fx, fy, fwd, left):
-    """The allocentric map's flags at the point ``fwd`` m ahead and ``left`` m to the left of
-    the pose (x0, y0, heading (fx, fy)); 0 outside the map."""
+def _ego_row(amap, wi, ox, oy, map_cs, px, py, lx, ly, cells, flags):
+    """``flags[m]``: the allocentric map's flags at the samples ``m`` of one row of the crop,
+    the points (``px - lx[m]``, ``py + ly[m]``), 0 outside the map. ``px``, ``py`` hold the
+    pose and the row's forward offset, ``lx``, ``ly`` each sample's left offset, so the sums
+    are those of ``x0 + fwd * fx - left * fy`` and ``y0 + fwd * fy + left * fx``. ``cells``
+    (int64 scratch of the same length) takes the map cells, computed in a loop of their own
+    that the compiler vectorises; the map is read without bounds checks when every sample of
+    the row lies inside it, as it does unless the agent is near the map's edge. ``map_cs``
+    is a power of two (:func:`egomap_crop` checks), so a product with its inverse is exactly
+    the quotient, and cheaper."""
     M = amap.shape[1]
-    wx = x0 + fwd * fx - left * fy
-    wy = y0 + fwd * fy + left * fx
-    c = int(math.floor((wx - map_origin[wi, 0]) / map_cs))
-    r = int(math.floor((wy - map_origin[wi, 1]) / map_cs))
-    if r < 0 or r >= M or c < 0 or c >= M:
-        return 0
-    return amap[wi, r, c]
+    inv_cs = 1.0 / map_cs  # multiplying by it is the division: map_cs is a power of two
+    lo = M
+    hi = -1
+    for m in range(flags.shape[0]):
+        c = int(math.floor((px - lx[m] - ox) * inv_cs))
+        r = int(math.floor((py + ly[m] - oy) * inv_cs))
+        lo = min(lo, min(r, c))
+        hi = max(hi, max(r, c))
+        cells[m] = r * M + c
+    grid = amap[wi].ravel()
+    if lo >= 0 and hi < M:
+        for m in range(flags.shape[0]):
+            flags[m] = grid[cells[m]]
+        return
+    for m in range(flags.shape[0]):
+        c = int(math.floor((px - lx[m] - ox) * inv_cs))
+        r = int(math.floor((py + ly[m] - oy) * inv_cs))
+        flags[m] = grid[r * M + c] if 0 <= r < M and 0 <= c < M else 0
 
 
 @threaded()
-def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows):
-    """Crop ``out[k]`` (C, S, S) for world ``rows[k]``: channel 0 obstacles, channel 1
+def egomap_crop(amap, map_origin, map_cs, est_pose, ego_cs, out, rows, slots):
+    """Crop ``out[slots[k]]`` (C, S, S) for world ``rows[k]``: channel 0 obstacles, channel 1
     explored free space; row 0 is ahead of the agent, column 0 to its left. Each cell samples
     4 x 4 points: channel 0 is 1 when at least a quarter of them are obstacles (so a door
     narrower than two cells stays open), channel 1 the fraction that is explored floor. With
     C = 6, channels 2-5 apply channel 0's rule to each quarter of the cell (4 x 4 points of
     its own), in the order (front left, front right, back left, back right): the obstacles
-    at twice the resolution, as ``torch.nn.functional.pixel_shuffle`` unpacks them."""
+    at twice the resolution, as ``torch.nn.functional.pixel_shuffle`` unpacks them.
+
+    The samples are read a row of the crop at a time (the cells' 4 x S samples at one
+    forward offset, then the quarters' 8 x S), their left offsets computed once per call.
+    ``map_cs`` must be a power of two (ValueError otherwise; the simulator's is 0.25 m)."""
     S = out.shape[2]
     sub = 4
+    quarters = out.shape[1] >= 6
+    if math.frexp(map_cs)[0] != 0.5:
+        raise ValueError("egomap_crop: the map's cell size must be a power of two")
+    # forward (row) and left (column) offsets (m) of the samples: a cell's 4 x 4, and
+    # each quarter's 4 x 4 (index 2 * sub * a + sub * half + s, half = the quarter's row or column)
+    off1 = np.empty((S, sub))
+    off2 = np.empty((S, 2, sub))
+    for a in range(S):
+        for s in range(sub):
+            off1[a, s] = (S / 2.0 - a - (s + 0.5) / sub) * ego_cs
+            for h in range(2):
+                off2[a, h, s] = (S / 2.0 - a - (h + (s + 0.5) / sub) / 2) * ego_cs
+    off1 = off1.reshape(-1)
+    off2 = off2.reshape(-1)
     for k in prange(rows.shape[0]):
         wi = rows[k]
+        slot = slots[k]
         x0 = est_pose[wi, 0]
         y0 = est_pose[wi, 1]
         th = est_pose[wi, 2]
         fx = math.cos(th)
         fy = math.sin(th)
+        ox = map_origin[wi, 0]
+        oy = map_origin[wi, 1]
+        lx1 = off1 * fy
+        ly1 = off1 * fx
+        lx2 = off2 * fy
+        ly2 = off2 * fx
+        flags = np.empty(off2.shape[0], np.uint8)
+        cells = np.empty(off2.shape[0], np.int64)
+        obs = np.zeros(S, np.int64)  # per cell of the row: samples on obstacles, on explored floor
+        free = np.zeros(S, np.int64)
+        qobs = np.zeros(2 * S, np.int64)  # per quarter of the half-row
         for a in range(S):
-            for b in range(S):
-                obs = 0.0
-                free = 0.0
-                for sa in range(sub):
+            obs[:] = 0
+            free[:] = 0
+            for sa in range(sub):
+                fwd = off1[a * sub + sa]
+                _ego_row(amap, wi, ox, oy, map_cs, x0 + fwd * fx, y0 + fwd * fy, lx1, ly1, cells, flags[:S * sub])
+                for b in range(S):  # the flags are 0, EGO_EXPLORED or both bits
                     for sb in range(sub):
-                        fwd = (S / 2.0 - a - (sa + 0.5) / sub) * ego_cs
-                        left = (S / 2.0 - b - (sb + 0.5) / sub) * ego_cs
-                        v = _ego_sample(amap, wi, map_origin, map_cs, x0, y0, fx, fy, fwd, left)
-                        if v & EGO_OBSTACLE:
-                            obs += 1.0
-                        elif v & EGO_EXPLORED:
-                            free += 1.0 / (sub * sub)
-                blocked = obs * 4 >= sub * sub
-                out[k, 0, a, b] = 1.0 if blocked else 0.0
-                out[k, 1, a, b] = free
-                if out.shape[1] < 6:
-                    continue
-                for q in range(4):
-                    qobs = 0.0
-                    for sa in range(sub):
+                        v = flags[b * sub + sb]
+                        obs[b] += (v & EGO_OBSTACLE) >> 1
+                        free[b] += v == EGO_EXPLORED
+            for b in range(S):
+                out[slot, 0, a, b] = 1.0 if obs[b] * 4 >= sub * sub else 0.0
+                out[slot, 1, a, b] = free[b] * (1.0 / (sub * sub))
+            if not quarters:
+                continue
+            for ha in range(2):
+                qobs[:] = 0
+                for sa in range(sub):
+                    fwd = off2[(a * 2 + ha) * sub + sa]
+                    _ego_row(amap, wi, ox, oy, map_cs, x0 + fwd * fx, y0 + fwd * fy, lx2, ly2, cells, flags)
+                    for b in range(2 * S):
                         for sb in range(sub):
-                            fwd = (S / 2.0 - a - (q // 2 + (sa + 0.5) / sub) / 2) * ego_cs
-                            left = (S / 2.0 - b - (q % 2 + (sb + 0.5) / sub) / 2) * ego_cs
-                            if _ego_sample(amap, wi, map_origin, map_cs, x0, y0, fx, fy, fwd, left) & EGO_OBSTACLE:
-                                qobs += 1.0
-                    out[k, 2 + q, a, b] = 1.0 if qobs * 4 >= sub * sub else 0.0
+                            qobs[b] += (flags[b * sub + sb] & EGO_OBSTACLE) >> 1
+                for b in range(S):
+                    for hb in range(2):
+                        out[slot, 2 + 2 * ha + hb, a, b] = 1.0 if qobs[2 * b + hb] * 4 >= sub * sub else 0.0
