@@ -56,11 +56,8 @@ class FlatMapPolicy(FlatPolicy):
         self.map = encoder
 
     def with_map_plan(self, obs: dict) -> dict:
-        """``obs`` and, with the value-iteration module, its read-out under ``MAP_PLAN`` (a
-        numpy array (B, vin_dim + 2), :meth:`MapEncoder.map_plan`)."""
-        if self.map.vin is None:
-            return obs
-        return {**obs, MAP_PLAN: self.map.map_plan(*self._map_inputs(obs)).cpu().numpy()}
+        """``obs`` and, with the value-iteration module, its read-out (:meth:`MapEncoder.with_map_plan`)."""
+        return self.map.with_map_plan(obs, self.goal_key)
 
     def _map_inputs(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor]:
         """The ego maps (B, C, S, S) and point goals (B, 2) of observations with any leading dims."""

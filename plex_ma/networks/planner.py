@@ -112,6 +112,18 @@ class MapEncoder(nn.Module):
         feats, subgoal = self.vin(ego, goal)
         return torch.cat([feats, subgoal], dim=1)
 
+    @torch.no_grad()
+    def with_map_plan(self, obs: dict, goal_key: str = "goal") -> dict:
+        """``obs`` and, with the value-iteration module, its read-out under ``MAP_PLAN`` (a
+        numpy array (B, vin_dim + 2)) for the goal under ``goal_key``: what the trainers
+        store with each decision or step."""
+        if self.vin is None or MAP_PLAN in obs:
+            return obs
+        dev = self.convs[0].weight.device
+        ego = as_tensor(obs["ego_map"], dev, torch.float32)
+        goal = as_tensor(obs[goal_key], dev, torch.float32)
+        return {**obs, MAP_PLAN: self.map_plan(ego, goal).cpu().numpy()}
+
     def read_map(self, ego: torch.Tensor, goal: torch.Tensor, plan: torch.Tensor | None = None
                  ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """ego (B, C, S, S), goal (B, 2) = (distance m, direction rad) -> the trunk's features
@@ -250,16 +262,6 @@ class Planner(MapEncoder):
         rho = torch.hypot(subgoal[..., 0], subgoal[..., 1]).clamp(self.min_subgoal_distance, self.rho_max)
         theta = torch.atan2(subgoal[..., 1], subgoal[..., 0]).clamp(-PI32, PI32)
         return torch.stack([rho, theta], dim=-1)
-
-    @torch.no_grad()
-    def with_map_plan(self, obs: dict) -> dict:
-        """``obs`` and, with the value-iteration module, its read-out under ``MAP_PLAN`` (a
-        numpy array (B, vin_dim + 2)): what the trainer stores with each decision."""
-        if self.vin is None or MAP_PLAN in obs:
-            return obs
-        dev = self.convs[0].weight.device
-        plan = self.map_plan(as_tensor(obs["ego_map"], dev, torch.float32), as_tensor(obs["goal"], dev, torch.float32))
-        return {**obs, MAP_PLAN: plan.cpu().numpy()}
 
     @torch.no_grad()
     def act(self, obs: dict, deterministic: bool = False) -> PlannerAct:
