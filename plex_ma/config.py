@@ -109,12 +109,16 @@ class TrainConfig:
     """PLEX, prior-free planner only: the untrained sub-goal mean's constant start, this many metres ahead in every state"""
     planner_stop_radius: float | None = None
     """PLEX, prior-free planner only: no stop head; the planner stops when its sampled sub-goal lies within this many metres of the agent (None: a learned stop head)"""
+    planner_state_std: bool = False
+    """PLEX, prior-free planner only: the sub-goal's log-std is a learned head's output (started at --planner-subgoal-std in every state) rather than one parameter per axis"""
     executor_no_reversal: bool = True
     """the executor (and the flat policies, which share its network) never undoes its previous turn within a sub-goal (or episode): no RIGHT right after LEFT, nor LEFT after RIGHT"""
     planner_value_iteration: bool = True
     """PLEX only: the planner also reads a value-iteration module over its ego map (networks.ValueIteration; the paper's planner has none)"""
     planner_fine_map: bool = True
     """the value-iteration module plans on the ego map's 0.25 m quarter cells (64 x 64) instead of its 0.5 m cells"""
+    planner_trunk_stride: int = 1
+    """the stride of the planner's second map convolution, which the map arm shares (the paper's: 1, 10,816 features; 2: 3,136)"""
     executor_hidden: int = 128
     """GRU hidden size of the executor and the flat GRU policy (512 in the paper)"""
     smt_memory: int = 128
@@ -174,10 +178,11 @@ def cpu_recipe(method: str) -> dict:
     """The recommended recipe, TrainConfig's defaults: reward-only PLEX, both agents by PPO
     on the reward alone from the first step. The flat baselines share its images, worlds and
     rollouts and take 4 PPO epochs per update. Each method's learning rate is the best of its
-    sweep (docs/results.md)."""
+    sweep (docs/results.md). The flat methods' update uses torch's threads on every core
+    (PLEX's two updates already run side by side, one thread each)."""
     if method.startswith("plex"):
         return {}
-    return dict(ppo_epochs=4) | (dict(lr=3e-4) if method == "ppo-smt" else {})
+    return dict(ppo_epochs=4, torch_threads=0) | (dict(lr=3e-4) if method == "ppo-smt" else {})
 
 
 def smoke_recipe(method: str) -> dict:
@@ -253,6 +258,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(-20 <= cfg.executor_stop_bias <= 20, "executor_stop_bias", "must be in [-20, 20] logits")
     need(cfg.planner_stop_radius is None or 0 < cfg.planner_stop_radius <= 1, "planner_stop_radius",
          "must be in (0, 1] metres")
+    need(cfg.planner_trunk_stride in (1, 2), "planner_trunk_stride", "must be 1 or 2")
     need(0 <= cfg.planner_subgoal_forward <= cfg.env.rho_max, "planner_subgoal_forward", "must be in [0, rho_max] metres")
     need(0.5 < cfg.random_subgoal_distance <= cfg.env.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")
     need(cfg.dist_timeout > 0, "dist_timeout", "must be positive")

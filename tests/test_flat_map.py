@@ -70,7 +70,8 @@ def test_vector_env_ego_map_is_opt_in():
 
 def test_map_policy_reads_the_map_through_the_planners_encoder():
     """The policy's map encoder is the planner's (same modules, same parameter names under
-    ``map.``, the value-iteration module in both); the map changes the policy's output and
+    ``map.``, the value-iteration module in both), its heads read the planner's heads'
+    features and its memory PPO-GRU's inputs; the map changes the policy's output and
     its gradient reaches the encoder's convolutions."""
     torch.manual_seed(0)
     policy = FlatMapPolicy("gru", 64, gru_hidden=32, value_iteration=True)
@@ -81,6 +82,11 @@ def test_map_policy_reads_the_map_through_the_planners_encoder():
     assert policy_map == planner_map and len(policy_map) == 4
     assert type(policy.map.vin) is type(planner.vin) is ValueIteration
     assert policy.reads_ego_map and not FlatPolicy.reads_ego_map
+    # the heads read what the planner's read, in the same form; the memory reads what PPO-GRU's reads
+    assert policy.map_fc[0].in_features == planner.fc[0].in_features
+    assert policy.actor.mlp[0].in_features == policy.critic.mlp[0].in_features == planner.subgoal_mean.mlp[0].in_features
+    flat = FlatPolicy("gru", 64, gru_hidden=32)
+    assert policy.memory.gru.input_size == flat.memory.gru.input_size
     gen = torch.Generator().manual_seed(2)
     obs = policy.example_obs(3, gen)
     starts = torch.ones(3, dtype=torch.bool)
@@ -134,6 +140,10 @@ def test_method_builds_the_map_policy_with_the_presets_value_iteration():
     net = build_policies(cfg)["policy"]
     assert type(net) is FlatMapPolicy and net.map.vin is not None
     assert build_policies(replace(cfg, planner_value_iteration=False))["policy"].map.vin is None
+    # --planner-trunk-stride 2: the planner's and the map arm's trunk both give 3,136 features (10,816 at 1)
+    strided = replace(cfg, planner_trunk_stride=2)
+    assert build_policies(strided)["policy"].map.map_dim == 7 * 7 * 64 and net.map.map_dim == 13 * 13 * 64
+    assert build_policies(replace(strided, method="plex-gru"))["planner"].map_dim == 7 * 7 * 64
     assert type(build_policies(replace(cfg, method="ppo-gru"))["policy"]) is FlatPolicy
     assert parse(["--preset", "smoke", "--method", "ppo-gru-map"]).method == "ppo-gru-map"
     with pytest.raises(ValueError, match="method.*unknown method"):

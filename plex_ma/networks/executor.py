@@ -91,12 +91,10 @@ class Executor(nn.Module):
 
     def __init__(self, memory: str = "gru", resolution: int = 128, eli_dim: int = ELI_DIM,
                  smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512,
-                 stop_prior: float | None = None, extra_inputs: int = 0, heading_prior: float | None = None,
+                 stop_prior: float | None = None, heading_prior: float | None = None,
                  no_reversal: bool = False, stop_bias: float = 0.0):
         """``stop_bias``: a constant added to the actor's STOP bias at initialisation (the same
         in every state), which sets how long an untrained executor's turns last.
-        ``extra_inputs``: features a subclass's ``_inputs`` adds to the memory's input
-        beside the image's and the goal's (:class:`FlatMapPolicy`'s map features).
         ``heading_prior`` (logits, or None): the actor's goal inputs start
         at MOVE_FORWARD += k cos(direction), TURN_LEFT += k sin, TURN_RIGHT -= k sin, so an
         untrained policy turns towards its goal and moves when it faces it."""
@@ -107,9 +105,9 @@ class Executor(nn.Module):
         emb = 512 if memory == "gru" else 128
         self.encoder = RGBDEncoder(resolution, emb)
         if memory == "gru":
-            self.memory = GRUMemory(emb + 3 + extra_inputs, gru_hidden)
+            self.memory = GRUMemory(emb + 3, gru_hidden)
         else:
-            self.memory = SMTMemory(emb + 3 + extra_inputs, 128, smt_heads, smt_memory)
+            self.memory = SMTMemory(emb + 3, 128, smt_heads, smt_memory)
         self._memory_shape = tuple(self.memory.initial_state(1).shape[1:])
         self.eli_head = layer_init(nn.Linear(self.memory.out_dim, eli_dim))
         # the heads also read the encoded goal vector, so that "turn towards the

@@ -15,6 +15,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from plex_ma.envs.sim.core import BatchedSim
+from plex_ma.envs.sim.kernels import pick, prange, threaded
 
 EGO_CELL = BatchedSim.ego_cell  # m: the ego map's cell size (32 x 32 cells, the agent at cell (16, 16))
 ITERATIONS = {False: 40, True: 80}  # Bellman updates on the 32 x 32 map and on the fine 64 x 64 one
@@ -145,7 +146,7 @@ def bellman(cost: torch.Tensor, sources: torch.Tensor, iterations: int) -> torch
         return bellman_reference(cost, sources, iterations)
     c = cost.detach().contiguous().numpy()
     out = np.empty_like(c)
-    _bellman_forward(c, sources.contiguous().numpy(), iterations, out)
+    pick(_bellman_forward, c.shape[0])(c, sources.contiguous().numpy(), iterations, out)
     return torch.from_numpy(out)
 
 
@@ -196,16 +197,16 @@ def _diag_costs(c, cd):
                 cd[k, i, j] = _diag_cost(c, i, j, da, db, h, w)
 
 
-@numba.njit(cache=True, nogil=True)
+@threaded(nogil=True)
 def _bellman_forward(cost, sources, iterations, out):
     """``iterations`` updates of every map into ``out``, with the same float operations as
     :func:`bellman_reference`; a map's updates stop early once one changes no cell (the
-    fixed point: the rest would change nothing)."""
+    fixed point: the rest would change nothing). The maps are shared out over threads."""
     B, h, w = cost.shape
     big = np.float32(BELLMAN_UNREACHED)
-    p = np.full((h + 2, w + 2), big, np.float32)
-    cd = np.empty((4, h, w), np.float32)
-    for b in range(B):
+    for b in prange(B):
+        p = np.full((h + 2, w + 2), big, np.float32)
+        cd = np.empty((4, h, w), np.float32)
         c, d, src = cost[b], out[b], sources[b]
         _diag_costs(c, cd)
         for i in range(h):
