@@ -10,7 +10,7 @@ from gymnasium.utils import EzPickle
 from pettingzoo import AECEnv
 from pettingzoo.utils import wrappers
 
-from .rules import EXECUTOR, PLANNER, InvalidAction, OneWorldEnv, PlexConfig, PlexWorlds, make_config
+from .rules import EXECUTOR, InvalidAction, OneWorldEnv, PlexConfig, PlexWorlds, make_config
 from .sim.topdown import topdown_view
 from .spaces import executor_action_space, executor_observation_space, planner_action_space, planner_observation_space
 from .viewer import HumanViewer
@@ -126,21 +126,21 @@ class raw_env(OneWorldEnv, AECEnv, EzPickle):
         w = self.worlds
         if agent == "planner":
             stop, subgoal = _unpack(action, agent, ("stop", "subgoal"))
-            out = w.step(stop=np.reshape(stop, (1,)), subgoal=np.asarray(subgoal)[None])  # _unpack checked the shapes
+            out = w.step_one(stop=stop, subgoal=subgoal)  # _unpack checked the shapes
         else:
             act, eli = _unpack(action, agent, ("action", "eli"))
-            out = w.step(action=np.reshape(act, (1,)), eli=np.asarray(eli)[None])
+            out = w.step_one(action=act, eli=eli)
         self._cumulative_rewards[agent] = 0.0
-        self.rewards = {"planner": float(out.rewards[0, PLANNER]), "executor": float(out.rewards[0, EXECUTOR])}
+        self.rewards = {"planner": out.planner_reward, "executor": out.executor_reward}
         self._accumulate_rewards()
-        if out.acted[0] == EXECUTOR:
+        if out.acted == EXECUTOR:
             self._path.append(w.sim.pos[0].copy())
         info = w.info(0)
         self.infos = {a: dict(info) for a in self.agents}
-        if out.terminated[0] or out.truncated[0]:
+        if out.terminated or out.truncated:
             for a in self.agents:
-                self.terminations[a] = bool(out.terminated[0])
-                self.truncations[a] = bool(out.truncated[0])
+                self.terminations[a] = out.terminated
+                self.truncations[a] = out.truncated
             self.agent_selection = agent
             self._deads_step_first()
         else:

@@ -1,9 +1,10 @@
 """The one implementation of PLEX's turn order, rewards, episode ends and metrics.
 
 :class:`PlexWorlds` applies docs/spec.md section 3 to N worlds of a :class:`BatchedSim`; the
-AEC environment (``plex_nav_v0``) is these rules with N = 1 and the vector env is these
-rules with autoreset. :class:`PointNavWorlds` applies docs/spec.md section 4 (one flat agent) and
-shares the episode handling, the goal-progress reward and the metrics.
+AEC environment (``plex_nav_v0``) is these rules with N = 1 (stepped by
+:meth:`PlexWorlds.step_one`, the executor's turns on Python numbers) and the vector env is
+these rules with autoreset. :class:`PointNavWorlds` applies docs/spec.md section 4 (one flat
+agent) and shares the episode handling, the goal-progress reward and the metrics.
 
 Turn order (per world): after a reset the planner acts. A planner action either stops
 the episode (both agents terminate; +``success_reward`` to the planner on success) or
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from typing import NamedTuple
 
 import numpy as np
 
@@ -128,9 +130,26 @@ def make_config(cls, kwargs: dict):
     return cfg
 
 
-def progress_reward(d_prev: np.ndarray, d_new: np.ndarray, collided: np.ndarray, cfg: NavConfig) -> np.ndarray:
-    """Geodesic progress + slack + collision penalty: the goal-side reward of every action."""
+def progress_reward(d_prev, d_new, collided, cfg: NavConfig):
+    """Geodesic progress + slack + collision penalty: the goal-side reward of every action (on
+    arrays, or on Python numbers for one world, with the same float64 arithmetic)."""
     return (d_prev - d_new) + cfg.slack_reward + cfg.collision_reward * collided
+
+
+def executor_reward(d_prev, d_new, d_set, collided, stopped, cfg: PlexConfig):
+    """The executor's reward for one action and whether its STOP reached the sub-goal, from its
+    geodesic distance to the sub-goal before and after the action and when the sub-goal was
+    set (``d_set``); on arrays or on Python numbers, as :func:`progress_reward`."""
+    r = progress_reward(d_prev, d_new, collided, cfg)
+    # Only a sub-goal that was out of reach when it was set can be reached: a sub-goal set
+    # within the radius would pay the bonus for a STOP on the spot.
+    reached = stopped & (d_new < cfg.subgoal_radius) & (d_set >= cfg.subgoal_radius)
+    r += cfg.subgoal_reward * reached
+    if cfg.executor_stop_penalty:  # the two optional terms, 0 by default
+        r += cfg.executor_stop_penalty * (stopped & (d_new >= cfg.subgoal_radius))
+    if cfg.executor_collision_reward:
+        r += cfg.executor_collision_reward * collided
+    return r, reached
 
 
 class OneWorldEnv:
@@ -271,6 +290,27 @@ class PlexStep:
     truncated: np.ndarray  # (N,) bool: episode ended by max_steps
 
 
+class OneStep(NamedTuple):
+    """What :meth:`PlexWorlds.step_one` did: a :class:`PlexStep`'s one row as Python numbers
+    (the rewards the float32 values that PlexStep holds)."""
+
+    planner_reward: float
+    executor_reward: float
+    acted: int
+    executor_turn_end: bool
+    executor_stopped: bool
+    executor_reached: bool
+    terminated: bool
+    truncated: bool
+
+    @classmethod
+    def of(cls, out: PlexStep) -> OneStep:
+        """Row 0 of ``out``."""
+        return cls(float(out.rewards[0, PLANNER]), float(out.rewards[0, EXECUTOR]), int(out.acted[0]),
+                   bool(out.executor_turn_end[0]), bool(out.executor_stopped[0]), bool(out.executor_reached[0]),
+                   bool(out.terminated[0]), bool(out.truncated[0]))
+
+
 class PlexWorlds(_Worlds):
     """PLEX's rules over N worlds (see the module docstring)."""
 
@@ -285,6 +325,8 @@ class PlexWorlds(_Worlds):
         self.subgoal_dist0 = np.zeros(n, np.float64)  # ... when the sub-goal was set
         self.eli = np.zeros((n, ELI_DIM), np.float32)  # last ELI the executor sent
         self.planner_decisions = np.zeros(n, np.int64)
+        self._row0 = np.zeros(1, np.int64)  # the rows of step_one's world
+        self._action0 = np.zeros(1, np.int64)  # step_one's executor action, for the simulator
 
     def reset_rows(self, rows, episodes=None) -> None:
         super().reset_rows(rows, episodes)
@@ -371,17 +413,76 @@ class PlexWorlds(_Worlds):
                 raise InvalidAction("executor: it is the executor's turn; its action needs 'action' and 'eli'")
             act_a, eli_a = self.check_executor_action(_rows_of(action, n, (), "executor", "action")[ex],
                                                       _rows_of(eli, n, (ELI_DIM,), "executor", "eli")[ex])
-        flags = np.zeros((5, n), np.bool_)  # one allocation for the five flag arrays
-        out = PlexStep(
-            rewards=np.zeros((n, 2), np.float32), acted=np.full(n, -1, np.int8),
-            executor_turn_end=flags[0], executor_stopped=flags[1], executor_reached=flags[2],
-            terminated=flags[3], truncated=flags[4])
+        out = self._new_step()
         new = self._planner_step(pl, stop_a, sg, out) if len(pl) else pl
         if len(ex):
             self._executor_step(ex, act_a, eli_a, out, new)
         elif len(new):
             self._measure_subgoals(new, ex)
         return out
+
+    def _new_step(self) -> PlexStep:
+        flags = np.zeros((5, self.n), np.bool_)  # one allocation for the five flag arrays
+        return PlexStep(rewards=np.zeros((self.n, 2), np.float32), acted=np.full(self.n, -1, np.int8),
+                        executor_turn_end=flags[0], executor_stopped=flags[1], executor_reached=flags[2],
+                        terminated=flags[3], truncated=flags[4])
+
+    def step_one(self, stop=None, subgoal=None, action=None, eli=None) -> OneStep:
+        """:meth:`step` in a PlexWorlds of one world (the AEC env's), the action's parts given
+        as that world's (a number and an array each, not rows of arrays), the result as
+        Python numbers. Actions of the common types (a Python or numpy integer in range, a
+        finite float32 or float64 array of the right shape) skip the batched selection and
+        checks, and the executor's take a scalar path through the same rules, since numpy's
+        cost per call on one-element arrays is most of a turn there; any other action goes
+        through :meth:`step` as one row (its conversions, checks and messages)."""
+        if self.n != 1:
+            raise ValueError(f"step_one needs a PlexWorlds of one world, this one has {self.n}")
+        if not self.done[0]:
+            if self.turn[0] == EXECUTOR:
+                a = _whole(action, NUM_ACTIONS)
+                if a is not None and _float_vector(eli, ELI_DIM) and np.isfinite(eli).all():
+                    return self._executor_step_one(a, eli)
+            else:
+                s = _whole(stop, 2)
+                rho, th = subgoal.tolist() if _float_vector(subgoal, 2) else (math.nan, math.nan)
+                if s is not None and 0 <= rho <= self.cfg.rho_max and abs(th) <= np.pi + 1e-6:
+                    # check_planner_action's rules, in float64 (NaN and infinities fail them)
+                    out = self._new_step()
+                    new = self._planner_step(self._row0, np.array([s]), np.asarray(subgoal, np.float64)[None], out)
+                    self._measure_subgoals(new, new[:0])
+                    return OneStep.of(out)
+        rows = (None if x is None else np.asarray(x)[None] for x in (stop, subgoal, action, eli))
+        return OneStep.of(self.step(*rows))
+
+    def _executor_step_one(self, action: int, eli: np.ndarray) -> OneStep:
+        """:meth:`_executor_step` in world 0 of one, on Python numbers: the same float64
+        arithmetic, the rewards rounded to float32 as PlexStep holds them (``0 + r``)."""
+        cfg = self.cfg
+        sim = self.sim
+        d_goal_prev = float(sim.distance_to_goal[0])
+        d_sub_prev = float(self.subgoal_dist[0])
+        x, y = sim.pos[0].tolist()
+        self._action0[0] = action
+        collided = bool(sim.step(self._action0)[0])
+        if sim.pos[0, 0] != x or sim.pos[0, 1] != y:  # only a move changes the distance to the sub-goal
+            self._measure_subgoals(self._row0[:0], self._row0)
+        stopped = action == STOP
+        ex_r, reached = executor_reward(d_sub_prev, float(self.subgoal_dist[0]), float(self.subgoal_dist0[0]),
+                                        collided, stopped, cfg)
+        pl_r = progress_reward(d_goal_prev, float(sim.distance_to_goal[0]), collided, cfg)
+        if cfg.eli:
+            self.eli[0] = eli
+        self.collisions[0] += collided
+        self.steps[0] += 1
+        self.turn_steps[0] += 1
+        turn_end = stopped or self.turn_steps[0] >= cfg.n_ex
+        trunc = bool(self.steps[0] >= cfg.max_steps)
+        if turn_end:
+            self.turn[0] = PLANNER
+        if trunc:
+            self._finish(self._row0, np.zeros(1, np.bool_))
+        return OneStep(float(np.float32(0.0 + pl_r)), float(np.float32(0.0 + ex_r)), EXECUTOR,
+                       bool(turn_end or trunc), stopped, bool(reached), False, trunc)
 
     def _planner_step(self, rows, stop, sg, out: PlexStep) -> np.ndarray:
         """Apply planner actions; returns the worlds that got a new sub-goal (their
@@ -437,17 +538,9 @@ class PlexWorlds(_Worlds):
         # where the agent moved; turns, STOP and blocked moves keep the previous value.
         moved = (sim.pos[rows] != pos_prev).any(axis=1)
         self._measure_subgoals(new_subgoals, rows[moved])
-        d_sub = self.subgoal_dist[rows]
         stopped = action == STOP
-        ex_r = progress_reward(d_sub_prev, d_sub, collided, cfg)
-        # Only a sub-goal that was out of reach when it was set can be reached: a sub-goal set
-        # within the radius would pay the bonus for a STOP on the spot.
-        reached = stopped & (d_sub < cfg.subgoal_radius) & (self.subgoal_dist0[rows] >= cfg.subgoal_radius)
-        ex_r += cfg.subgoal_reward * reached
-        if cfg.executor_stop_penalty:  # the two optional terms, 0 by default
-            ex_r += cfg.executor_stop_penalty * (stopped & (d_sub >= cfg.subgoal_radius))
-        if cfg.executor_collision_reward:
-            ex_r += cfg.executor_collision_reward * collided
+        ex_r, reached = executor_reward(d_sub_prev, self.subgoal_dist[rows], self.subgoal_dist0[rows], collided,
+                                        stopped, cfg)
         pl_r = progress_reward(d_goal_prev, sim.distance_to_goal[rows], collided, cfg)
         out.rewards[rows, EXECUTOR] += ex_r  # float32(0 + r) = float32(r)
         out.rewards[rows, PLANNER] += pl_r
@@ -509,6 +602,18 @@ class PointNavWorlds(_Worlds):
             trunc[tr] = True
             self._finish(tr, np.zeros(len(tr), np.bool_))
         return rew, term, trunc
+
+
+def _whole(x, k: int) -> int | None:
+    """``x`` as an int if it is a Python or numpy integer (not a bool) in ``0..k-1``, else None."""
+    if (type(x) is int or isinstance(x, np.integer)) and 0 <= x < k:
+        return int(x)
+    return None
+
+
+def _float_vector(x, size: int) -> bool:
+    """Whether ``x`` is a float32 or float64 array of shape (size,)."""
+    return type(x) is np.ndarray and x.shape == (size,) and x.dtype.char in "fd"
 
 
 def _rows_of(x, n: int, tail: tuple, who: str, key: str) -> np.ndarray:

@@ -12,6 +12,7 @@ from pettingzoo.test import api_test, performance_benchmark, render_test, seed_t
 
 from plex_ma.envs import plex_nav_v0
 from plex_ma.envs.actions import InvalidAction
+from plex_ma.envs.rules import PLANNER, OneStep, PlexConfig, PlexWorlds
 from plex_ma.envs.sim import Episode
 
 from .env_helpers import (SMALL, assert_same_state, drive, executor_action, line_episode, planner_action,
@@ -239,6 +240,41 @@ def test_rewards_match_the_rules():
     env.step(executor_action(0))
     assert env.rewards["executor"] == pytest.approx(-0.01, abs=1e-6)
     assert env.agent_selection == "planner"
+
+
+@pytest.mark.parametrize("config", [
+    dict(SMALL, pose_noise=(0.05, 0.02)),
+    dict(SMALL, n_ex=3, max_steps=40, eli=False, subgoal_radius=1.0, success_distance=1.0,
+         executor_stop_penalty=-0.5, executor_collision_reward=-0.2),
+], ids=["noisy_pose", "penalties_truncating"])
+def test_one_world_step_is_the_batched_step(config):
+    """``PlexWorlds.step_one`` (the AEC env's, with its scalar path for the executor) does what
+    ``step`` does with the action as one row: the same results and state, bit for bit, for the
+    common action types and for those it hands to ``step`` (a float, a 0-d array, a list)."""
+    cfg = PlexConfig(**config)
+    one, batched = PlexWorlds(cfg, 1, seed=5), PlexWorlds(cfg, 1, seed=5)
+    rng = np.random.default_rng(0)
+    state = ("turn", "turn_steps", "subgoal", "subgoal_raw", "subgoal_dist", "subgoal_dist0", "eli",
+             "planner_decisions", "steps", "collisions", "done", "success", "spl")
+    for t in range(600):
+        if t == 0 or one.done[0]:
+            one.reset_rows([0])
+            batched.reset_rows([0])
+        if one.turn[0] == PLANNER:
+            stop = int(rng.random() < 0.03)
+            sg = np.array([rng.uniform(0, 4), rng.uniform(-np.pi, np.pi)], (np.float32, np.float64)[t % 2])
+            kw = dict(stop=(stop, np.int64(stop), np.array(stop), float(stop))[t % 4], subgoal=sg)
+        else:
+            a = int(rng.integers(0, 4))
+            eli = rng.normal(size=128).astype((np.float32, np.float64)[t % 2])
+            kw = dict(action=(a, np.int8(a), np.array(a), float(a))[t % 4], eli=eli if t % 5 else list(eli))
+        got = one.step_one(**kw)
+        want = OneStep.of(batched.step(**{k: np.asarray(v)[None] for k, v in kw.items()}))
+        assert got == want and all(type(x) is type(y) for x, y in zip(got, want))
+        for name in state:
+            np.testing.assert_array_equal(getattr(one, name), getattr(batched, name), err_msg=name)
+        for name in ("pos", "heading", "est_pose", "distance_to_goal", "rgb", "depth", "amap"):
+            np.testing.assert_array_equal(getattr(one.sim, name), getattr(batched.sim, name), err_msg=name)
 
 
 def test_subgoal_distance_is_the_geodesic_after_every_action():
