@@ -65,22 +65,22 @@ An action outside the agent's range, one that the mask forbids (an executor acti
 
 ## How it is built
 
-From the inside out:
-
 1. ``plex_nav_v0.env(eli=False, ...)``: the native env with order enforcing.
-2. ``supersuit.observation_lambda_v0`` (``flatten=True``): each agent's Dict observation
-   to its flat vector with the one-hot id in front (``agent_indicator_v0`` is not used: it
-   appends the id at the end, scaled to the space's largest bound, the 100 m goal distance).
-3. ``supersuit.pad_observations_v0`` (``pad=True``): zero-pads the shorter vector (the
-   executor's, by default) to the longer one's length.
-4. ``supersuit.action_lambda_v1``: the Discrete choices to the native Dict actions
-   (planner ``Discrete(K)``, executor ``Discrete(4)``, or its native Dict with ``eli=True``).
-5. ``supersuit.pad_action_space_v0`` (``pad=True``): both to ``Discrete(K)``. (On its own
-   it would silently map an executor action above 3 to 0, STOP.)
-6. :class:`CompatEnv` (ours), the env the user gets: puts the mask where ``mask`` says and
-   checks every Discrete action against it before it reaches step 5, since SuperSuit has
-   no action-mask wrapper. It is an AEC env of its own, not a wrapper: ``env.unwrapped`` is the compat
-   env itself, so every way of asking for the spaces (``observation_space(agent)``,
+2. :class:`CompatEnv` (ours) over it, the env the user gets. It maps each agent's Dict
+   observation to its flat vector with the one-hot id in front (``flatten=True``;
+   ``agent_indicator_v0`` is not used: it appends the id at the end, scaled to the
+   space's largest bound, the 100 m goal distance), zero-padded to the longer one's length
+   with ``pad=True`` (the executor's, by default); and each Discrete choice to the native
+   Dict action (planner ``Discrete(K)``, executor ``Discrete(4)``, or its native Dict with
+   ``eli=True``). These are the layouts SuperSuit's ``observation_lambda_v0``,
+   ``pad_observations_v0``, ``action_lambda_v1`` and ``pad_action_space_v0`` would give
+   (the padded spaces are the ones they build), done in one place instead of through
+   four wrappers that each read the episode's state through every level below them.
+   It puts the mask where ``mask`` says and checks every Discrete action against it before
+   it reaches the native env (SuperSuit has no action-mask wrapper, and its
+   ``pad_action_space_v0`` would silently map an executor action above 3 to 0, STOP). It
+   is an AEC env of its own, not a wrapper: ``env.unwrapped`` is the compat env itself,
+   so every way of asking for the spaces (``observation_space(agent)``,
    ``action_space(agent)``, the ``observation_spaces`` / ``action_spaces`` dicts, the
    same on ``unwrapped``) gives the compat spaces, which trainers that read
    ``unwrapped.observation_spaces`` (skrl, RLlib) need. The native env is
@@ -115,9 +115,9 @@ import functools
 
 import numba
 import numpy as np
-import supersuit as ss
 from gymnasium import spaces
 from pettingzoo import AECEnv
+from supersuit.utils.action_transforms.homogenize_ops import homogenize_spaces
 
 from .plex_nav import EPISODE_STATE, env as native_env
 from .actions import InvalidAction, discrete
@@ -186,18 +186,7 @@ def compat_env(image_size: int = 32, subgoal_distances=None, subgoal_directions:
         raise ValueError(f"compat_env: subgoal_distances={subgoal_distances!r} must be non-empty and each in "
                          f"(0, rho_max={cfg.rho_max}]")
     grid = subgoal_grid(dists, int(subgoal_directions))
-
-    e = base
-    if flatten:
-        e = ss.observation_lambda_v0(e, functools.partial(_flat_obs, image_size=int(image_size), eli=eli),
-                                     functools.partial(_flat_space, image_size=int(image_size), eli=eli))
-    if pad:
-        e = ss.pad_observations_v0(e)
-    e = ss.action_lambda_v1(e, functools.partial(_native_action, grid=grid, eli=eli),
-                            functools.partial(_action_space, k=1 + len(grid), eli=eli))
-    if pad:
-        e = ss.pad_action_space_v0(e)
-    return CompatEnv(e, build_args, mask)
+    return CompatEnv(base, build_args, mask, grid, int(image_size) if flatten else None, pad, eli)
 
 
 def compat_parallel_env(**kwargs):
@@ -219,47 +208,89 @@ def _downsample(img: np.ndarray, size: int) -> np.ndarray:
     r = img.shape[0]
     if r % size == 0:
         k = r // size
-        if k < 8:
-            return _block_mean(img, k)
         return img.reshape(size, k, size, k, img.shape[2]).mean(axis=(1, 3), dtype=np.float32)
     idx = ((np.arange(size) + 0.5) * r / size).astype(np.int64)
     return img[idx][:, idx].astype(np.float32)
 
 
+def _flat_image(rgb: np.ndarray, depth: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (4, S, S) float32: RGB scaled to [0, 1] and depth, downsampled to S x S
+    (:func:`_downsample`), channel first."""
+    r, size = rgb.shape[0], out.shape[1]
+    if r % size == 0 and r // size < 8:
+        _block_means(rgb, depth, r // size, out)
+        return
+    out[:3] = (_downsample(rgb, size) / np.float32(255.0)).transpose(2, 0, 1)
+    out[3] = _downsample(depth, size)[:, :, 0]
+
+
 @numba.njit(cache=True)
-def _block_mean(img, k):
-    """``img.reshape(S, k, S, k, C).mean(axis=(1, 3), dtype=np.float32)`` for k < 8, bit for bit
-    (``tests/test_compat.py``): numpy adds runs that short in order (its pairwise summation
-    starts at 8), each block row's sum in float32, then the rows' sums, and divides by the
-    count in float64. A loop here instead of numpy's buffered strided reduction, which takes
-    several times as long."""
-    s = img.shape[0] // k
-    c = img.shape[2]
-    out = np.empty((s, s, c), np.float32)
+def _block_means(rgb, depth, k, out):
+    """:func:`_flat_image` for k = R / S < 8, bit for bit (``tests/test_compat.py``): numpy's
+    float32 mean adds runs that short in order (its pairwise summation starts at 8), each
+    block row's sum in float32, then the rows' sums, and divides by the count in float64;
+    the RGB means are then divided by 255 in float32. RGB values are whole numbers, whose
+    float32 sums are exact in any order, so they are summed as integers in the order that
+    reads memory straight through; depth is summed in numpy's order. Compiled loops: numpy's
+    buffered strided reduction takes several times as long."""
+    s = rgb.shape[0] // k
+    n = np.float64(k * k)
+    rows = rgb.reshape(rgb.shape[0], -1)  # (R, 3R): an image row's values in memory order
+    col = np.empty(rows.shape[1], np.int32)  # a block row's k image rows, summed
+    blocks = np.zeros((3, s, s), np.int32)
     for a in range(s):
+        col[:] = 0
+        for i in range(k):
+            for e in range(rows.shape[1]):
+                col[e] += rows[a * k + i, e]
+        pixels = col.reshape(s, k, 3)
         for b in range(s):
-            for ch in range(c):
-                total = np.float32(0.0)
-                for i in range(k):
-                    row = np.float32(0.0)
-                    for j in range(k):
-                        row += np.float32(img[a * k + i, b * k + j, ch])
-                    total += row
-                out[a, b, ch] = np.float32(np.float64(total) / (k * k))
+            for j in range(k):
+                for ch in range(3):
+                    blocks[ch, a, b] += pixels[b, j, ch]
+    for ch in range(3):
+        for a in range(s):
+            for b in range(s):
+                out[ch, a, b] = np.float32(blocks[ch, a, b] / n) / np.float32(255.0)
+    d = depth.reshape(depth.shape[0], -1)
+    total = np.empty(s, np.float32)
+    for a in range(s):
+        total[:] = 0
+        for i in range(k):
+            for b in range(s):
+                row = np.float32(0.0)
+                for j in range(k):
+                    row += d[a * k + i, b * k + j]
+                total[b] += row
+        for b in range(s):
+            out[3, a, b] = np.float32(total[b] / n)
+
+
+def _flat_obs(obs: dict, agent: str, image_size: int, eli: bool, length: int) -> np.ndarray:
+    """An agent's native observation as its flat vector (the module docstring's layout) of
+    ``length`` values, zero beyond the agent's own (``pad=True``)."""
+    out = np.empty(length, np.float32)
+    if agent == "planner":
+        ego = obs["ego_map"].ravel()
+        n = 2 + len(ego)
+        out[:2] = (1.0, 0.0)
+        out[2:n] = ego
+        out[n:n + 2] = obs["goal"]
+        n += 2
+        if eli:
+            out[n:n + ELI_DIM] = obs["eli"]
+            n += ELI_DIM
+    else:
+        n = 2 + 4 * image_size * image_size
+        out[:2] = (0.0, 1.0)
+        _flat_image(obs["rgb"], obs["depth"], out[2:n].reshape(4, image_size, image_size))
+        out[n:n + 2] = obs["subgoal"]
+        n += 2
+    out[n:] = 0.0
     return out
 
 
-def _flat_obs(obs, obs_space, agent, image_size: int, eli: bool) -> np.ndarray:
-    if agent == "planner":
-        parts = [[1.0, 0.0], obs["ego_map"].ravel(), obs["goal"]] + ([obs["eli"]] if eli else [])
-        return np.concatenate(parts).astype(np.float32)
-    rgb = _downsample(obs["rgb"], image_size) / np.float32(255.0)
-    depth = _downsample(obs["depth"], image_size)
-    img = np.concatenate([rgb, depth], axis=2).transpose(2, 0, 1)
-    return np.concatenate([[0.0, 1.0], img.ravel(), obs["subgoal"]]).astype(np.float32)
-
-
-def _flat_space(obs_space, agent, image_size: int, eli: bool) -> spaces.Box:
+def _flat_space(obs_space, agent: str, image_size: int, eli: bool) -> spaces.Box:
     polar_lo, polar_hi = [0.0, -np.pi], [MAX_GOAL_DISTANCE, np.pi]
     if agent == "planner":
         n = int(np.prod(obs_space["ego_map"].shape))
@@ -272,7 +303,12 @@ def _flat_space(obs_space, agent, image_size: int, eli: bool) -> spaces.Box:
 
 
 # ---------------------------------------------------------------- actions
-def _native_action(action, act_space, agent, grid: np.ndarray, eli: bool):
+_ZERO_ELI = np.zeros(ELI_DIM, np.float32)  # the executor's ELI with the channel off, shared
+_ZERO_ELI.flags.writeable = False
+
+
+def _native_action(action, agent: str, grid: np.ndarray, eli: bool):
+    """A checked compat action as the native env's Dict action."""
     if agent == "executor" and eli:
         return action  # already the native Dict(action, eli); the native env checks it
     a = int(action)
@@ -280,20 +316,21 @@ def _native_action(action, act_space, agent, grid: np.ndarray, eli: bool):
         if a == 0:
             return {"stop": 1, "subgoal": np.zeros(2, np.float32)}
         return {"stop": 0, "subgoal": grid[a - 1].copy()}
-    return {"action": a, "eli": np.zeros(ELI_DIM, np.float32)}
+    return {"action": a, "eli": _ZERO_ELI}
 
 
-def _action_space(act_space, agent, k: int, eli: bool) -> spaces.Space:
+def _action_space(act_space, agent: str, k: int, eli: bool) -> spaces.Space:
     if agent == "planner":
         return spaces.Discrete(k)
     return act_space if eli else spaces.Discrete(len(ACTION_NAMES))
 
 
 class CompatEnv(AECEnv):
-    """The compat view: an AEC env in its own right over the SuperSuit chain (the steps of
-    the module docstring). It puts each agent's action mask where ``mask`` says and
-    rejects masked or malformed actions with :class:`InvalidAction` before they reach
-    SuperSuit's wrappers.
+    """The compat view: an AEC env in its own right over the native env (``plex_nav_v0.env()``,
+    the steps of the module docstring). It maps each observation to its flat layout and
+    each Discrete action to the native one, puts each agent's action mask where ``mask``
+    says, and rejects masked or malformed actions with :class:`InvalidAction` before they
+    reach the native env.
 
     Every way of asking for its spaces gives the compat spaces: ``observation_space(agent)``
     and ``action_space(agent)``, the ``observation_spaces`` and ``action_spaces`` dicts,
@@ -301,17 +338,28 @@ class CompatEnv(AECEnv):
     RLlib read the spaces there). The native env under it is :attr:`native`; its
     attributes (``config``, ``worlds``, ``scene_id`` ...) are also read through this one."""
 
-    def __init__(self, chain: AECEnv, build_args: dict, mask: str):
+    def __init__(self, base: AECEnv, build_args: dict, mask: str, grid: np.ndarray, image_size: int | None,
+                 pad: bool, eli: bool):
         super().__init__()
-        self.env = chain
-        self._native = chain.unwrapped
+        self.env = base
+        self._native = base.unwrapped
         self._build_args = dict(build_args)
         self.mask = mask
-        agents = chain.possible_agents
+        self._grid = grid
+        self._image_size = image_size  # None: the native Dict observations (flatten=False)
+        self._eli = eli
+        agents = base.possible_agents
         self.possible_agents = list(agents)
-        self.metadata = chain.metadata
-        self.render_mode = chain.render_mode
-        self._act_spaces = {a: chain.action_space(a) for a in agents}
+        self.metadata = base.metadata
+        self.render_mode = base.render_mode
+        obs_spaces = {a: base.observation_space(a) for a in agents}
+        if image_size is not None:
+            obs_spaces = {a: _flat_space(space, a, image_size, eli) for a, space in obs_spaces.items()}
+        self._act_spaces = {a: _action_space(base.action_space(a), a, 1 + len(grid), eli) for a in agents}
+        if pad:  # one space for both agents, the one SuperSuit's pad_observations_v0 / pad_action_space_v0 build
+            obs_spaces = dict.fromkeys(agents, homogenize_spaces(list(obs_spaces.values())))
+            self._act_spaces = dict.fromkeys(agents, homogenize_spaces(list(self._act_spaces.values())))
+        self._lengths = {a: space.shape[0] for a, space in obs_spaces.items()} if image_size is not None else None
         self.num_actions = int(self._act_spaces["planner"].n)
         self._masks = {}
         for a in agents:
@@ -319,16 +367,15 @@ class CompatEnv(AECEnv):
             m = np.zeros(space.n if isinstance(space, spaces.Discrete) else 0, np.int8)
             m[:self.num_actions if a == "planner" else len(ACTION_NAMES)] = 1
             self._masks[a] = m
-        self._obs_spaces = {a: chain.observation_space(a) for a in agents}
+        self._obs_spaces = obs_spaces
         if mask == "obs":
-            self._obs_spaces = {a: spaces.Dict({"observation": self._obs_spaces[a],
+            self._obs_spaces = {a: spaces.Dict({"observation": obs_spaces[a],
                                                 "action_mask": spaces.Box(0, 1, self._masks[a].shape, np.int8)})
                                 for a in agents}
 
     def __getattr__(self, name: str):
-        # The episode's state (agents, agent_selection, rewards, ...) is the native env's:
-        # no wrapper of the chain keeps its own, so it is read there at once instead of
-        # through the chain's five __getattr__ levels (a turn reads it about ten times).
+        # The episode's state (agents, agent_selection, rewards, ...) is the native env's,
+        # read there at once instead of through its order-enforcing wrapper.
         if name in EPISODE_STATE:
             return self._state(name)
         # the native env's other attributes, read through
@@ -338,7 +385,7 @@ class CompatEnv(AECEnv):
 
     def _state(self, name: str):
         """The native env's ``name``; before ``reset`` the AttributeError of PettingZoo's
-        order enforcing, as the chain gives."""
+        order enforcing."""
         if not self.env._has_reset and name != "_cumulative_rewards":
             raise AttributeError(f"{name} cannot be accessed before reset")
         return getattr(self._native, name)
@@ -380,9 +427,12 @@ class CompatEnv(AECEnv):
         return self._masks[agent].copy()
 
     def observe(self, agent):
+        obs = self.env.observe(agent)  # before reset, order enforcing's error
+        if self._image_size is not None:
+            obs = _flat_obs(obs, agent, self._image_size, self._eli, self._lengths[agent])
         if self.mask == "obs":
-            return {"observation": self.env.observe(agent), "action_mask": self._masks[agent].copy()}
-        return self.env.observe(agent)
+            return {"observation": obs, "action_mask": self._masks[agent].copy()}
+        return obs
 
     def reset(self, seed=None, options=None) -> None:
         self.env.reset(seed=seed, options=options)
@@ -397,16 +447,18 @@ class CompatEnv(AECEnv):
         self.env.close()
 
     def step(self, action) -> None:
-        started = self.env._has_reset  # the outermost SuperSuit wrapper's order enforcing
-        if started and not self.agents:
-            raise InvalidAction("step() called after the episode ended; call reset()")
-        if started:
-            agent = self.agent_selection
-            if self.terminations[agent] or self.truncations[agent]:
+        if self.env._has_reset:  # else order enforcing's error, from the native env's step
+            native = self._native
+            if not native.agents:
+                raise InvalidAction("step() called after the episode ended; call reset()")
+            agent = native.agent_selection
+            if native.terminations[agent] or native.truncations[agent]:
                 if action is not None:
                     raise InvalidAction(f"{agent}: the episode has ended; the only valid action is None (dead step)")
-            elif isinstance(self._act_spaces[agent], spaces.Discrete):
-                action = self._check(agent, action)
+            else:
+                if isinstance(self._act_spaces[agent], spaces.Discrete):
+                    action = self._check(agent, action)
+                action = _native_action(action, agent, self._grid, self._eli)
         self.env.step(action)
 
     def _check(self, agent: str, action) -> int:

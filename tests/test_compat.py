@@ -375,21 +375,24 @@ def test_frame_skip_repeats_executor_actions_and_replays_the_planner():
     assert w.planner_decisions[0] > 1
 
 
-@pytest.mark.parametrize("resolution, size", [(128, 32), (64, 32), (96, 32), (160, 32), (32, 32), (256, 32), (70, 10)])
-def test_downsample_is_numpys_block_mean_bit_for_bit(resolution, size):
-    """The compiled block mean gives numpy's float32 mean exactly (the flat executor
-    observation's bits do not depend on which of the two computed it); sizes that do not
-    divide the resolution take the nearest pixel."""
+@pytest.mark.parametrize("resolution, size", [(128, 32), (64, 32), (96, 32), (160, 32), (32, 32), (256, 32), (70, 10),
+                                              (36, 12)])
+def test_flat_image_is_numpys_block_mean_bit_for_bit(resolution, size):
+    """The flat executor image is numpy's float32 block mean exactly (RGB then divided by 255),
+    whether the compiled kernel (blocks under 8 pixels) or numpy computed it; sizes that do
+    not divide the resolution take the nearest pixel."""
     rng = np.random.default_rng(resolution)
-    for img in (rng.integers(0, 256, (resolution, resolution, 3), dtype=np.uint8),
-                rng.random((resolution, resolution, 1), dtype=np.float32),
-                (rng.random((resolution, resolution, 1)) ** 3).astype(np.float32)):
-        got = compat._downsample(img, size)
+    rgb = rng.integers(0, 256, (resolution, resolution, 3), dtype=np.uint8)
+    for depth in (rng.random((resolution, resolution, 1), dtype=np.float32),
+                  (rng.random((resolution, resolution, 1)) ** 3).astype(np.float32)):
+        got = np.full((4, size, size), np.nan, np.float32)
+        compat._flat_image(rgb, depth, got)
         if resolution % size:
             idx = ((np.arange(size) + 0.5) * resolution / size).astype(np.int64)
-            want = img[idx][:, idx].astype(np.float32)
+            mean = [img[idx][:, idx].astype(np.float32) for img in (rgb, depth)]
         else:
             k = resolution // size
-            want = img.reshape(size, k, size, k, img.shape[2]).mean(axis=(1, 3), dtype=np.float32)
-        assert got.dtype == np.float32 and got.shape == (size, size, img.shape[2])
+            mean = [img.reshape(size, k, size, k, img.shape[2]).mean(axis=(1, 3), dtype=np.float32)
+                    for img in (rgb, depth)]
+        want = np.concatenate([mean[0] / np.float32(255.0), mean[1]], axis=2).transpose(2, 0, 1)
         np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
