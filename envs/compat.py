@@ -434,6 +434,16 @@ class CompatEnv(AECEnv):
             return {"observation": obs, "action_mask": self._masks[agent].copy()}
         return obs
 
+    def last(self, observe: bool = True):
+        # after the reset, the native env's state read there at once (AECEnv.last's five
+        # reads would each go through __getattr__)
+        if not self.env._has_reset:
+            return super().last(observe)  # order enforcing's AttributeError
+        native = self._native
+        agent = native.agent_selection
+        return (self.observe(agent) if observe else None, native._cumulative_rewards[agent],
+                native.terminations[agent], native.truncations[agent], self.infos[agent])
+
     def reset(self, seed=None, options=None) -> None:
         self.env.reset(seed=seed, options=options)
 
@@ -447,18 +457,17 @@ class CompatEnv(AECEnv):
         self.env.close()
 
     def step(self, action) -> None:
-        if self.env._has_reset:  # else order enforcing's error, from the native env's step
-            native = self._native
-            if not native.agents:
-                raise InvalidAction("step() called after the episode ended; call reset()")
-            agent = native.agent_selection
-            if native.terminations[agent] or native.truncations[agent]:
-                if action is not None:
-                    raise InvalidAction(f"{agent}: the episode has ended; the only valid action is None (dead step)")
-            else:
-                if isinstance(self._act_spaces[agent], spaces.Discrete):
-                    action = self._check(agent, action)
-                action = _native_action(action, agent, self._grid, self._eli)
+        agent = self.agent_selection  # before reset, order enforcing's AttributeError
+        native = self._native
+        if not native.agents:
+            raise InvalidAction("step() called after the episode ended; call reset()")
+        if native.terminations[agent] or native.truncations[agent]:
+            if action is not None:
+                raise InvalidAction(f"{agent}: the episode has ended; the only valid action is None (dead step)")
+        else:
+            if isinstance(self._act_spaces[agent], spaces.Discrete):
+                action = self._check(agent, action)
+            action = _native_action(action, agent, self._grid, self._eli)
         self.env.step(action)
 
     def _check(self, agent: str, action) -> int:

@@ -47,9 +47,19 @@ class _OrderEnforcing(wrappers.OrderEnforcingWrapper):
         return super().__getattr__(name)
 
     def step(self, action) -> None:
-        if self._has_reset and not self.agents:
+        if not self._has_reset:
+            super().step(action)  # PettingZoo's error
+            return
+        if not self.env.agents:
             raise InvalidAction("step() called after the episode ended; call reset()")
-        super().step(action)
+        self._has_updated = True  # what PettingZoo's step does before stepping the env
+        self.env.step(action)
+
+    def last(self, observe: bool = True):
+        # after the reset, the env's own last(), without a wrapper level for each of its reads
+        if self._has_reset:
+            return self.env.last(observe)
+        return super().last(observe)
 
 
 class raw_env(OneWorldEnv, AECEnv, EzPickle):
