@@ -109,8 +109,6 @@ class TrainConfig:
     """PLEX, prior-free planner only: the untrained sub-goal mean's constant start, this many metres ahead in every state"""
     planner_stop_radius: float | None = None
     """PLEX, prior-free planner only: no stop head; the planner stops when its sampled sub-goal lies within this many metres of the agent (None: a learned stop head)"""
-    planner_state_std: bool = False
-    """PLEX, prior-free planner only: the sub-goal's log-std is a learned head's output (started at --planner-subgoal-std in every state) rather than one parameter per axis"""
     executor_no_reversal: bool = True
     """the executor (and the flat policies, which share its network) never undoes its previous turn within a sub-goal (or episode): no RIGHT right after LEFT, nor LEFT after RIGHT"""
     planner_value_iteration: bool = True

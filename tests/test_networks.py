@@ -457,23 +457,3 @@ def test_planner_stop_radius_stops_on_its_own_subgoal():
     assert net.act(obs, deterministic=True)["stop"].all()  # untrained: the mean is near the agent
     assert not Planner(stop_radius=0.2, subgoal_forward=1.0).act(obs, deterministic=True)["stop"].any()
 
-
-def test_planner_state_std_starts_constant_and_learns_per_state():
-    """--planner-state-std: the sub-goal's std is a head's output that starts at the constant
-    init_std in every state, and one gradient step on states that want different spreads
-    gives them different stds (the fixed per-axis parameter could not)."""
-    torch.manual_seed(0)
-    net = Planner(state_std=True, init_std=0.5, stop_radius=0.2)
-    assert not hasattr(net, "subgoal_log_std")
-    obs = net.example_obs(64)
-    std = net(obs)[1].stddev
-    torch.testing.assert_close(std, torch.full((64, 2), 0.5), atol=0.02, rtol=0)
-    near = obs["goal"][:, 0] < 5.0  # ask for a narrow spread where the goal is near, a wide one elsewhere
-    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
-    for _ in range(100):
-        log_std = net(obs)[1].stddev.log().mean(-1)
-        loss = ((log_std - torch.where(near, math.log(0.1), math.log(1.0))) ** 2).mean()
-        opt.zero_grad(), loss.backward(), opt.step()
-    with torch.no_grad():
-        std = net(obs)[1].stddev.mean(-1)
-    assert std[near].max() < 0.3 < 0.6 < std[~near].min()

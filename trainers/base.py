@@ -42,7 +42,7 @@ RETIRED_CONFIG = {"executor_goal_skip": True}
 
 # The settings that shape the networks (and their action mask): a checkpoint loads only into a run with the same.
 ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_no_reversal")
-PLEX_ARCH_KEYS = ("planner_prior", "planner_value_iteration", "planner_fine_map", "planner_stop_radius", "planner_state_std",
+PLEX_ARCH_KEYS = ("planner_prior", "planner_value_iteration", "planner_fine_map", "planner_stop_radius",
                    "planner_trunk_stride")  # ... and for the methods that read the ego map (the planner's)
 NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
 
@@ -90,8 +90,7 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
                   init_std=cfg.planner_subgoal_std, value_iteration=cfg.planner_value_iteration,
                   fine_map=cfg.planner_fine_map, trunk_stride=cfg.planner_trunk_stride)
         planner = (PriorPlanner(stop_distance=cfg.env.success_distance, **kw) if cfg.planner_prior
-                   else Planner(subgoal_forward=cfg.planner_subgoal_forward, stop_radius=cfg.planner_stop_radius,
-                           state_std=cfg.planner_state_std, **kw))
+                   else Planner(subgoal_forward=cfg.planner_subgoal_forward, stop_radius=cfg.planner_stop_radius, **kw))
         return {"planner": planner,
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden,

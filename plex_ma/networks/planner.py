@@ -26,7 +26,6 @@ GOAL_FEATURES = 5  # planner_goal_features' width
 PLAN_FEATURES = 4  # plan_features' width
 SUBGOAL_MARGIN = 0.05  # m: sub-goals lie at least this far beyond the executor's sub-goal radius
 MAP_PLAN = "map_plan"  # observation key of a stored value-iteration read-out (MapEncoder.map_plan)
-LOG_STD_MIN, LOG_STD_MAX = math.log(0.02), math.log(2.0)  # bounds of a state-dependent sub-goal log-std
 STOP_INIT_LOGIT = -3.0  # Planner's constant starting stop bias: p(stop) ~0.05 in every state
 # PriorPlanner's hand-set terms (the old recipe, which docs/spec.md section 6 bars from the defaults):
 STOP_PRIOR_MARGIN = 0.005  # m: its untrained p(stop) is 0.5 this far inside the success distance
@@ -183,23 +182,17 @@ class Planner(MapEncoder):
     when its sampled sub-goal lies within ``stop_radius`` of the agent, so the action is the
     sample alone and its log-prob is the Gaussian's. A planner that has learned to send the
     executor to the goal then stops where the goal is its own position.
-
-    With ``state_std`` (``--planner-state-std``) the sub-goal's log-std is a head's output
-    too (started at log(``init_std``) in every state, squashed into [0.02, 2] m), so the
-    planner can be precise where it means to stop and explore elsewhere.
     """
 
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
                  map_size: int = 32, init_std: float = 0.5, head_hidden: int = 256,
                  value_iteration: bool = False, subgoal_radius: float | None = None, fine_map: bool = False,
-                 subgoal_forward: float = 0.0, stop_radius: float | None = None, state_std: bool = False,
-                 trunk_stride: int = 1):
+                 subgoal_forward: float = 0.0, stop_radius: float | None = None, trunk_stride: int = 1):
         # ``convs`` and ``vin`` (the map reading) keep their names: checkpoints key on them
         super().__init__(ego_channels, channels, map_size, value_iteration, fine_map, trunk_stride)
         self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
         self.stop_radius = stop_radius  # None: a stop head; else stop = a sampled sub-goal this near the agent
-        self.state_std = state_std  # the sub-goal's log-std: a head's output (True) or one parameter per axis
         # no sub-goal within the executor's radius (None: any distance)
         self.min_subgoal_distance = 0.0 if subgoal_radius is None else min(subgoal_radius + SUBGOAL_MARGIN, rho_max)
         self.fc = nn.Sequential(layer_init(nn.Linear(self.map_dim + eli_dim + GOAL_FEATURES + self.vin_dim, hidden)),
@@ -208,13 +201,7 @@ class Planner(MapEncoder):
         if subgoal_forward:  # a constant start of the sub-goal mean, this far ahead in every state
             with torch.no_grad():
                 self.subgoal_mean.linear.bias[0] += subgoal_forward
-        if state_std:  # started at the constant log(init_std) in every state
-            self.subgoal_log_std_head = Head(hidden + GOAL_FEATURES + PLAN_FEATURES, head_hidden, 2, 0.01)
-            start = (math.log(init_std) - LOG_STD_MIN) / (LOG_STD_MAX - LOG_STD_MIN)
-            with torch.no_grad():
-                self.subgoal_log_std_head.linear.bias.fill_(math.log(start / (1 - start)))
-        else:
-            self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
+        self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
 
     def _build_heads(self, feat: int, head_hidden: int) -> None:
         if self.stop_radius is None:
@@ -254,12 +241,7 @@ class Planner(MapEncoder):
         (forward, left) positions, value (B,))."""
         h = self.features(obs)
         mean = self.subgoal_mean(h)
-        if self.state_std:
-            # squashed into the bounds (CleanRL's SAC does the same with a tanh): a clamp would stop the gradient
-            std = (LOG_STD_MIN + (LOG_STD_MAX - LOG_STD_MIN) * torch.sigmoid(self.subgoal_log_std_head(h))).exp()
-        else:
-            std = self.subgoal_log_std.exp().expand_as(mean)
-        subgoal = Normal(mean, std)
+        subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
         stop = None if self.stop_radius is not None else Categorical(logits=self.stop_logits(h))
         return stop, subgoal, self.critic(h).squeeze(-1)
 
