@@ -77,6 +77,7 @@ def pick(kernel, jobs: int):
 
 
 MAX_BOUNDARIES = 16
+RENDER_TILE = 16  # image columns per rendering job
 INF = 1e30
 
 # ---------------------------------------------------------------------------------------
@@ -117,16 +118,29 @@ def _shade(rgb, f):
 def render(kind, g_off, g_h, g_w, g_ox, g_oy, cs, klo, khi, kmat, kroom,
            room_wall_rgb, room_floor_rgb, mat_rgb, scene_idx, pos, heading,
            cam_height, ceiling, hfov, max_depth, out_rgb, out_depth, active):
-    """Render RGB-D for the active worlds into ``out_rgb`` (N,H,W,3) and ``out_depth`` (N,H,W,1)."""
+    """Render RGB-D for the active worlds into ``out_rgb`` (N,H,W,3) and ``out_depth`` (N,H,W,1).
+
+    A job draws one world's tile of RENDER_TILE adjacent columns, each column by a ray
+    marched through the grid and filled front to back. The tile's depth goes first into a
+    column-major scratch and is copied out row by row: written straight down a column of
+    ``out_depth``, whose rows lie a power of two apart at the usual sizes, every pixel would
+    land in the same few cache sets and miss."""
     n = pos.shape[0]
     H = out_rgb.shape[1]
     W = out_rgb.shape[2]
     f = (W / 2.0) / math.tan(hfov / 2.0)
-    for job in prange(n * W):
-        wi = job // W
-        j = job % W
+    nt = (W + RENDER_TILE - 1) // RENDER_TILE
+    for job in prange(n * nt):
+        wi = job // nt
+        j0 = (job % nt) * RENDER_TILE
         if not active[wi]:
             continue
+        tw = min(RENDER_TILE, W - j0)
+        # depth of the tile's columns; the padding keeps its columns off each other's cache sets
+        dtile = np.empty((RENDER_TILE, H + RENDER_TILE), np.float32)
+        bt = np.empty(MAX_BOUNDARIES, np.float64)
+        bk = np.empty(MAX_BOUNDARIES, np.int64)
+        bax = np.empty(MAX_BOUNDARIES, np.int64)
         s = scene_idx[wi]
         off = g_off[s]
         gh = g_h[s]
@@ -135,182 +149,182 @@ def render(kind, g_off, g_h, g_w, g_ox, g_oy, cs, klo, khi, kmat, kroom,
         oy = g_oy[s]
         px = pos[wi, 0]
         py = pos[wi, 1]
-        phi = math.atan((W / 2.0 - j - 0.5) / f)
-        cphi = math.cos(phi)
-        ang = heading[wi] + phi
-        dx = math.cos(ang)
-        dy = math.sin(ang)
-        # --- march the horizontal ray through the grid, recording kind changes ---
-        bt = np.empty(MAX_BOUNDARIES, np.float64)
-        bk = np.empty(MAX_BOUNDARIES, np.int64)
-        bax = np.empty(MAX_BOUNDARIES, np.int64)
-        gx = (px - ox) / cs
-        gy = (py - oy) / cs
-        col = int(math.floor(gx))
-        row = int(math.floor(gy))
-        cur = kind[off + row * gw + col]
-        bt[0] = 0.0
-        bk[0] = cur
-        bax[0] = 0
-        nb = 1
-        if dx > 1e-12:
-            sx = 1
-            tdx = cs / dx
-            tmx = (col + 1 - gx) * cs / dx
-        elif dx < -1e-12:
-            sx = -1
-            tdx = -cs / dx
-            tmx = (gx - col) * cs / (-dx)
-        else:
-            sx = 0
-            tdx = INF
-            tmx = INF
-        if dy > 1e-12:
-            sy = 1
-            tdy = cs / dy
-            tmy = (row + 1 - gy) * cs / dy
-        elif dy < -1e-12:
-            sy = -1
-            tdy = -cs / dy
-            tmy = (gy - row) * cs / (-dy)
-        else:
-            sy = 0
-            tdy = INF
-            tmy = INF
-        tmax = max_depth / cphi + cs
-        closed = False  # ended on a full-height blocker
-        while True:
-            if tmx < tmy:
-                t = tmx
-                col += sx
-                tmx += tdx
-                axis = 0
+        for tj in range(tw):
+            j = j0 + tj
+            phi = math.atan((W / 2.0 - j - 0.5) / f)
+            cphi = math.cos(phi)
+            ang = heading[wi] + phi
+            dx = math.cos(ang)
+            dy = math.sin(ang)
+            # --- march the horizontal ray through the grid, recording kind changes ---
+            gx = (px - ox) / cs
+            gy = (py - oy) / cs
+            col = int(math.floor(gx))
+            row = int(math.floor(gy))
+            cur = kind[off + row * gw + col]
+            bt[0] = 0.0
+            bk[0] = cur
+            bax[0] = 0
+            nb = 1
+            if dx > 1e-12:
+                sx = 1
+                tdx = cs / dx
+                tmx = (col + 1 - gx) * cs / dx
+            elif dx < -1e-12:
+                sx = -1
+                tdx = -cs / dx
+                tmx = (gx - col) * cs / (-dx)
             else:
-                t = tmy
-                row += sy
-                tmy += tdy
-                axis = 1
-            if t > tmax:
-                break
-            if row < 0 or row >= gh or col < 0 or col >= gw:
-                break
-            k = kind[off + row * gw + col]
-            if k != cur:
-                cur = k
-                bt[nb] = t
-                bk[nb] = k
-                bax[nb] = axis
-                nb += 1
-                if klo[k] <= 0.0 and khi[k] >= ceiling:
-                    closed = True
-                    break
-                if nb == MAX_BOUNDARIES:
-                    break
-        # --- fill the column front to back. Every kind is attached to the floor (lo == 0)
-        # or to the ceiling (hi >= ceiling), so the rows not yet drawn always form one
-        # interval [top, bot]; each face or surface fills rows from one of its ends. ---
-        top = 0
-        bot = H - 1
-        hc = H / 2.0 - 0.5
-        for q in range(nb):
-            if top > bot:
-                break
-            k = bk[q]
-            z0 = bt[q] * cphi
-            z1 = INF
-            if q + 1 < nb:
-                z1 = bt[q + 1] * cphi
-            lo = klo[k]
-            hi = khi[k]
-            solid = hi > lo
-            m = kmat[k]
-            if q > 0 and solid:
-                # vertical face at the region's entry: rows whose ray height at z0 is in [lo, hi]
-                i0 = max(top, int(math.ceil(hc - f * (hi - cam_height) / z0)))
-                i1 = min(bot, int(math.floor(hc - f * (lo - cam_height) / z0)))
-                if m <= 1 or m == 3:  # wall or void: coloured by the room it is seen from
-                    pr = kroom[bk[q - 1]]
-                    c3 = room_wall_rgb[pr] if pr >= 0 else mat_rgb[1]
+                sx = 0
+                tdx = INF
+                tmx = INF
+            if dy > 1e-12:
+                sy = 1
+                tdy = cs / dy
+                tmy = (row + 1 - gy) * cs / dy
+            elif dy < -1e-12:
+                sy = -1
+                tdy = -cs / dy
+                tmy = (gy - row) * cs / (-dy)
+            else:
+                sy = 0
+                tdy = INF
+                tmy = INF
+            tmax = max_depth / cphi + cs
+            while True:
+                if tmx < tmy:
+                    t = tmx
+                    col += sx
+                    tmx += tdx
+                    axis = 0
                 else:
-                    c3 = mat_rgb[m]
-                fac = 1.0 if bax[q] == 0 else 0.78
-                cr, cg, cb = _shade(c3, fac)
-                dz = min(z0, max_depth) / max_depth
-                for i in range(i0, i1 + 1):
-                    out_depth[wi, i, j, 0] = dz
-                    out_rgb[wi, i, j, 0] = np.uint8(cr)
-                    out_rgb[wi, i, j, 1] = np.uint8(cg)
-                    out_rgb[wi, i, j, 2] = np.uint8(cb)
-                if i1 >= i0:
-                    if lo <= 0.0 and hi >= ceiling:
-                        top = bot + 1
+                    t = tmy
+                    row += sy
+                    tmy += tdy
+                    axis = 1
+                if t > tmax:
+                    break
+                if row < 0 or row >= gh or col < 0 or col >= gw:
+                    break
+                k = kind[off + row * gw + col]
+                if k != cur:
+                    cur = k
+                    bt[nb] = t
+                    bk[nb] = k
+                    bax[nb] = axis
+                    nb += 1
+                    if klo[k] <= 0.0 and khi[k] >= ceiling:  # a full-height blocker
                         break
-                    if lo <= 0.0:
-                        bot = i0 - 1
+                    if nb == MAX_BOUNDARIES:
+                        break
+            # --- fill the column front to back. Every kind is attached to the floor (lo == 0)
+            # or to the ceiling (hi >= ceiling), so the rows not yet drawn always form one
+            # interval [top, bot]; each face or surface fills rows from one of its ends. ---
+            top = 0
+            bot = H - 1
+            hc = H / 2.0 - 0.5
+            for q in range(nb):
+                if top > bot:
+                    break
+                k = bk[q]
+                z0 = bt[q] * cphi
+                z1 = INF
+                if q + 1 < nb:
+                    z1 = bt[q + 1] * cphi
+                lo = klo[k]
+                hi = khi[k]
+                solid = hi > lo
+                m = kmat[k]
+                if q > 0 and solid:
+                    # vertical face at the region's entry: rows whose ray height at z0 is in [lo, hi]
+                    i0 = max(top, int(math.ceil(hc - f * (hi - cam_height) / z0)))
+                    i1 = min(bot, int(math.floor(hc - f * (lo - cam_height) / z0)))
+                    if m <= 1 or m == 3:  # wall or void: coloured by the room it is seen from
+                        pr = kroom[bk[q - 1]]
+                        c3 = room_wall_rgb[pr] if pr >= 0 else mat_rgb[1]
                     else:
-                        top = i1 + 1
-            # horizontal surfaces inside the region
-            fl = hi if (solid and lo <= 0.0) else 0.0
-            ce = lo if (solid and lo > 0.0) else ceiling
-            # bottom surface (floor or furniture top): rows that descend below fl before z1
-            ib = top
-            if z1 < INF:
-                ib = max(top, int(math.floor(hc - f * (fl - cam_height) / z1)) + 1)
-            else:
-                ib = max(top, int(math.floor(hc)) + 1)
-            if fl <= 0.0:
-                rm = kroom[k]
-                c3 = room_floor_rgb[rm] if rm >= 0 else mat_rgb[m]
-                for i in range(ib, bot + 1):
-                    zs = (fl - cam_height) * f / (hc - i)
+                        c3 = mat_rgb[m]
+                    fac = 1.0 if bax[q] == 0 else 0.78
+                    cr, cg, cb = _shade(c3, fac)
+                    dz = min(z0, max_depth) / max_depth
+                    for i in range(i0, i1 + 1):
+                        dtile[tj, i] = dz
+                        out_rgb[wi, i, j, 0] = np.uint8(cr)
+                        out_rgb[wi, i, j, 1] = np.uint8(cg)
+                        out_rgb[wi, i, j, 2] = np.uint8(cb)
+                    if i1 >= i0:
+                        if lo <= 0.0 and hi >= ceiling:
+                            top = bot + 1
+                            break
+                        if lo <= 0.0:
+                            bot = i0 - 1
+                        else:
+                            top = i1 + 1
+                # horizontal surfaces inside the region
+                fl = hi if (solid and lo <= 0.0) else 0.0
+                ce = lo if (solid and lo > 0.0) else ceiling
+                # bottom surface (floor or furniture top): rows that descend below fl before z1
+                ib = top
+                if z1 < INF:
+                    ib = max(top, int(math.floor(hc - f * (fl - cam_height) / z1)) + 1)
+                else:
+                    ib = max(top, int(math.floor(hc)) + 1)
+                if fl <= 0.0:
+                    rm = kroom[k]
+                    c3 = room_floor_rgb[rm] if rm >= 0 else mat_rgb[m]
+                    for i in range(ib, bot + 1):
+                        zs = (fl - cam_height) * f / (hc - i)
+                        if zs < z0:
+                            zs = z0
+                        d = zs / cphi
+                        chk = (int(math.floor((px + d * dx) * 2.0)) + int(math.floor((py + d * dy) * 2.0))) & 1
+                        cr, cg, cb = _shade(c3, 1.0 - 0.12 * chk)
+                        dtile[tj, i] = min(zs, max_depth) / max_depth
+                        out_rgb[wi, i, j, 0] = np.uint8(cr)
+                        out_rgb[wi, i, j, 1] = np.uint8(cg)
+                        out_rgb[wi, i, j, 2] = np.uint8(cb)
+                else:
+                    cr, cg, cb = _shade(mat_rgb[m], 1.2)
+                    for i in range(ib, bot + 1):
+                        zs = (fl - cam_height) * f / (hc - i)
+                        if zs < z0:
+                            zs = z0
+                        dtile[tj, i] = min(zs, max_depth) / max_depth
+                        out_rgb[wi, i, j, 0] = np.uint8(cr)
+                        out_rgb[wi, i, j, 1] = np.uint8(cg)
+                        out_rgb[wi, i, j, 2] = np.uint8(cb)
+                if ib <= bot:
+                    bot = ib - 1
+                # top surface (ceiling or lintel underside): rows that rise above ce before z1
+                if z1 < INF:
+                    it = min(bot, int(math.ceil(hc - f * (ce - cam_height) / z1)) - 1)
+                else:
+                    it = min(bot, int(math.ceil(hc)) - 1)
+                if ce >= ceiling:
+                    cr, cg, cb = 236.0, 234.0, 228.0
+                else:
+                    cr, cg, cb = _shade(mat_rgb[m], 0.7)
+                for i in range(top, it + 1):
+                    zs = (ce - cam_height) * f / (hc - i)
                     if zs < z0:
                         zs = z0
-                    d = zs / cphi
-                    chk = (int(math.floor((px + d * dx) * 2.0)) + int(math.floor((py + d * dy) * 2.0))) & 1
-                    cr, cg, cb = _shade(c3, 1.0 - 0.12 * chk)
-                    out_depth[wi, i, j, 0] = min(zs, max_depth) / max_depth
+                    dtile[tj, i] = min(zs, max_depth) / max_depth
                     out_rgb[wi, i, j, 0] = np.uint8(cr)
                     out_rgb[wi, i, j, 1] = np.uint8(cg)
                     out_rgb[wi, i, j, 2] = np.uint8(cb)
-            else:
-                cr, cg, cb = _shade(mat_rgb[m], 1.2)
-                for i in range(ib, bot + 1):
-                    zs = (fl - cam_height) * f / (hc - i)
-                    if zs < z0:
-                        zs = z0
-                    out_depth[wi, i, j, 0] = min(zs, max_depth) / max_depth
-                    out_rgb[wi, i, j, 0] = np.uint8(cr)
-                    out_rgb[wi, i, j, 1] = np.uint8(cg)
-                    out_rgb[wi, i, j, 2] = np.uint8(cb)
-            if ib <= bot:
-                bot = ib - 1
-            # top surface (ceiling or lintel underside): rows that rise above ce before z1
-            if z1 < INF:
-                it = min(bot, int(math.ceil(hc - f * (ce - cam_height) / z1)) - 1)
-            else:
-                it = min(bot, int(math.ceil(hc)) - 1)
-            if ce >= ceiling:
-                cr, cg, cb = 236.0, 234.0, 228.0
-            else:
-                cr, cg, cb = _shade(mat_rgb[m], 0.7)
-            for i in range(top, it + 1):
-                zs = (ce - cam_height) * f / (hc - i)
-                if zs < z0:
-                    zs = z0
-                out_depth[wi, i, j, 0] = min(zs, max_depth) / max_depth
-                out_rgb[wi, i, j, 0] = np.uint8(cr)
-                out_rgb[wi, i, j, 1] = np.uint8(cg)
-                out_rgb[wi, i, j, 2] = np.uint8(cb)
-            if it >= top:
-                top = it + 1
-        # rows left open (march ended by range or by too many boundaries): far away
-        for i in range(top, bot + 1):
-            out_depth[wi, i, j, 0] = 1.0
-            out_rgb[wi, i, j, 0] = np.uint8(128)
-            out_rgb[wi, i, j, 1] = np.uint8(128)
-            out_rgb[wi, i, j, 2] = np.uint8(128)
-        if closed:
-            pass
+                if it >= top:
+                    top = it + 1
+            # rows left open (march ended by range or by too many boundaries): far away
+            for i in range(top, bot + 1):
+                dtile[tj, i] = 1.0
+                out_rgb[wi, i, j, 0] = np.uint8(128)
+                out_rgb[wi, i, j, 1] = np.uint8(128)
+                out_rgb[wi, i, j, 2] = np.uint8(128)
+        od = out_depth[wi].reshape(-1)
+        for i in range(H):  # the tile's depth, a row at a time
+            p = i * W + j0
+            for tj in range(tw):
+                od[p + tj] = dtile[tj, i]
 
 
 # ---------------------------------------------------------------------------------------
