@@ -26,8 +26,7 @@ from plex_ma.envs.rules import PlexConfig, make_config
 # The smallest image the executor's CNN takes (convolutions 8/4, 4/2, 3/1; tests check it).
 CNN_MIN_RESOLUTION = 36
 # Where the trainer's env defaults differ from the env's own (the env's are the paper's, docs/spec.md).
-TRAIN_ENV = {"resolution": 48, "n_ex": 30, "subgoal_radius": 0.2, "executor_stop_penalty": -0.5,
-             "executor_collision_reward": -0.15}
+TRAIN_ENV = {"resolution": 48, "n_ex": 30, "subgoal_radius": 0.2}
 CURRICULUM_START_DISTANCE = 2.5  # m: the training episodes' largest geodesic distance at step 0 of a curriculum
 Method = Literal["plex-gru", "plex-smt", "ppo-gru", "ppo-smt", "ppo-gru-map"]
 Preset = Literal["smoke", "cpu", "paper"]
@@ -63,11 +62,11 @@ class TrainConfig:
     """start the networks from this checkpoint's weights (a file or pretrained:NAME) and fine-tune them with fresh optimisers from step 0; a checkpoint in --run-dir is resumed instead"""
     lr: float = 1e-3
     """Adam learning rate (both agents)"""
-    planner_lr: float | None = 2.5e-4
+    planner_lr: float | None = None
     """PLEX only: the planner's Adam learning rate (None: --lr)"""
-    planner_subgoal_std: float = 0.25
+    planner_subgoal_std: float = 0.5
     """PLEX only: the starting standard deviation of the planner's sampled sub-goal (rho in m, theta in rad)"""
-    curriculum_steps: int = 0
+    curriculum_steps: int = 400_000
     """sampled training episodes' largest start-goal geodesic distance grows linearly from CURRICULUM_START_DISTANCE (2.5 m) to Habitat's 30 m over this many steps (0: no curriculum)"""
     anneal_lr: bool = True
     """decay every learning rate linearly to zero at --total-steps (CleanRL's anneal_lr)"""
@@ -75,7 +74,7 @@ class TrainConfig:
     """executor (or flat agent) steps per world between its PPO updates"""
     n_pl: int = 8
     """planner decisions per world per planner update (N_PL)"""
-    gamma_ex: float = 0.9
+    gamma_ex: float = 0.99
     """executor discount per executor step"""
     gamma_pl: float = 0.95
     """planner discount per planner decision (when --planner-step-gamma is None)"""
@@ -85,8 +84,8 @@ class TrainConfig:
     """flat baselines' discount per step"""
     gae_lambda: float = 0.95
     """GAE lambda"""
-    ppo_epochs: int = 1
-    """PPO epochs per update (PLEX's; the cpu preset gives the flat methods 4)"""
+    ppo_epochs: int = 4
+    """PPO epochs per update"""
     num_minibatches: int = 2
     """minibatches per PPO epoch (the executor's and flat agent's split the worlds, the planner's its decisions)"""
     clip: float = 0.2
@@ -97,25 +96,19 @@ class TrainConfig:
     """value loss weight"""
     max_grad_norm: float = 0.5
     """gradient clipping norm"""
-    planner_prior: bool = True
-    """PLEX only: the planner's sub-goal mean is the value-iteration sub-goal (or the goal) plus learned offsets, and a hand-set skip from the goal distance sets its stop (networks.PriorPlanner); --no-planner-prior: every output is learned from standard initialisation (networks.Planner, docs/spec.md section 6)"""
-    executor_stop_prior: float | None = 0.15
-    """PLEX only: start the executor's STOP at p = 0.5 this many metres from its sub-goal, rising nearer and vanishing farther (a skip from the sub-goal distance; None: no skip)"""
-    executor_heading_prior: float | None = 3.0
-    """PLEX only: start the executor's actor turning towards its sub-goal and moving when it faces it, with this many logits (None: no prior)"""
-    executor_stop_bias: float = 0.0
+    executor_stop_bias: float = -3.0
     """PLEX only: a constant added to the untrained executor's STOP logit, the same in every state (it sets how long its first turns last)"""
-    planner_subgoal_forward: float = 0.0
-    """PLEX, prior-free planner only: the untrained sub-goal mean's constant start, this many metres ahead in every state"""
-    planner_stop_radius: float | None = None
-    """PLEX, prior-free planner only: no stop head; the planner stops when its sampled sub-goal lies within this many metres of the agent (None: a learned stop head)"""
+    planner_subgoal_forward: float = 1.0
+    """PLEX only: the untrained sub-goal mean's constant start, this many metres ahead in every state"""
+    planner_stop_radius: float | None = 0.15
+    """PLEX only: no stop head; the planner stops when its sampled sub-goal lies within this many metres of the agent (None: a learned stop head)"""
     executor_no_reversal: bool = True
     """the executor (and the flat policies, which share its network) never undoes its previous turn within a sub-goal (or episode): no RIGHT right after LEFT, nor LEFT after RIGHT"""
     planner_value_iteration: bool = True
     """PLEX only: the planner also reads a value-iteration module over its ego map (networks.ValueIteration; the paper's planner has none)"""
     planner_fine_map: bool = True
     """the value-iteration module plans on the ego map's 0.25 m quarter cells (64 x 64) instead of its 0.5 m cells"""
-    planner_trunk_stride: int = 1
+    planner_trunk_stride: int = 2
     """the stride of the planner's second map convolution, which the map arm shares (the paper's: 1, 10,816 features; 2: 3,136)"""
     executor_hidden: int = 128
     """GRU hidden size of the executor and the flat GRU policy (512 in the paper)"""
@@ -174,13 +167,14 @@ def from_dict(d: dict) -> TrainConfig:
 
 def cpu_recipe(method: str) -> dict:
     """The recommended recipe, TrainConfig's defaults: reward-only PLEX, both agents by PPO
-    on the reward alone from the first step. The flat baselines share its images, worlds and
-    rollouts and take 4 PPO epochs per update. Each method's learning rate is the best of its
-    sweep (docs/results.md). The flat methods' update uses torch's threads on every core
-    (PLEX's two updates already run side by side, one thread each)."""
+    on the reward alone from the first step, with no hand-set term in any policy output
+    (docs/spec.md section 6). The flat baselines share its images, worlds, curriculum,
+    rollouts and PPO settings; PPO-SMT takes the best learning rate of its sweep
+    (docs/results.md). The flat methods' update uses torch's threads on every core (PLEX's
+    two updates already run side by side, one thread each)."""
     if method.startswith("plex"):
         return {}
-    return dict(ppo_epochs=4, torch_threads=0) | (dict(lr=3e-4) if method == "ppo-smt" else {})
+    return dict(torch_threads=0) | (dict(lr=3e-4) if method == "ppo-smt" else {})
 
 
 def smoke_recipe(method: str) -> dict:
@@ -191,15 +185,16 @@ def smoke_recipe(method: str) -> dict:
 
 
 def paper_recipe(method: str) -> dict:
-    """The paper's settings: 256 px images, N_EX = 10, N_PL = 128, 30M steps, a 512-unit
-    executor GRU at one constant learning rate, the env's own rewards, and no
-    value-iteration module or priors."""
+    """The paper's settings: 256 px images, N_EX = 10, N_PL = 128, gamma_EX = 0.9, 30M steps,
+    a 512-unit executor GRU at one constant learning rate, the env's own rewards, the paper's
+    map trunk and a stop head, no value-iteration module and no curriculum."""
     env = {f.name: f.default for f in dataclasses.fields(PlexConfig) if f.name in TRAIN_ENV}
     return env | dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128, lr=2.5e-4,
-                      planner_lr=None, anneal_lr=False, ppo_epochs=4, executor_hidden=512, executor_stop_prior=None,
-                      executor_heading_prior=None, executor_no_reversal=False,
+                      planner_lr=None, anneal_lr=False, ppo_epochs=4, gamma_ex=0.9, executor_hidden=512,
+                      executor_no_reversal=False, executor_stop_bias=0.0, planner_subgoal_forward=0.0,
+                      planner_stop_radius=None, planner_trunk_stride=1, curriculum_steps=0,
                       planner_value_iteration=False, planner_fine_map=False, planner_step_gamma=None,
-                      planner_subgoal_std=0.5, torch_threads=0)
+                      torch_threads=0)
 
 
 # Each preset's recipe for a method: the values that differ from TrainConfig's defaults.
@@ -249,10 +244,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.executor in ("learn", "oracle"), "executor", "must be 'learn' or 'oracle'")
     need(not (cfg.planner != "learn" and cfg.executor == "oracle"), "executor",
          "with --executor oracle the planner must learn (nothing would be trained)")
-    need(cfg.executor_stop_prior is None or 0 < cfg.executor_stop_prior <= 2, "executor_stop_prior",
-         "must be in (0, 2] metres")
-    need(cfg.executor_heading_prior is None or 0 < cfg.executor_heading_prior <= 20, "executor_heading_prior",
-         "must be in (0, 20] logits")
     need(-20 <= cfg.executor_stop_bias <= 20, "executor_stop_bias", "must be in [-20, 20] logits")
     need(cfg.planner_stop_radius is None or 0 < cfg.planner_stop_radius <= 1, "planner_stop_radius",
          "must be in (0, 1] metres")

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from plex_ma.envs.sim.core import STOP
-from plex_ma.networks import ELI_DIM, MAP_PLAN, STOP_INIT_LOGIT, SUBGOAL_MARGIN, Executor, FlatMapPolicy, FlatPolicy, Planner, PriorPlanner
+from plex_ma.networks import ELI_DIM, MAP_PLAN, STOP_INIT_LOGIT, SUBGOAL_MARGIN, Executor, FlatMapPolicy, FlatPolicy, Planner
 from plex_ma.trainers.base import build_policies
 from plex_ma.trainers.ppo import RolloutBuffer
 
@@ -16,7 +16,7 @@ from plex_ma.trainers.ppo import RolloutBuffer
 @pytest.fixture(scope="module")
 def planner():
     torch.manual_seed(0)
-    return PriorPlanner()
+    return Planner()
 
 
 def _stack(obs_list):
@@ -152,23 +152,6 @@ def _check_log_probs(pl, obs, out):
     torch.testing.assert_close(pl.evaluate_actions(obs, ones, raw)[0], pl.evaluate_actions(obs, ones, raw + 3)[0])
 
 
-def test_prior_planner_actions():
-    torch.manual_seed(0)
-    pl = PriorPlanner(rho_max=4.0, init_std=math.exp(1.5), channels=(8, 8), hidden=64)  # wide std: samples leave the box
-    obs = pl.example_obs(256)
-    out = pl.act(obs)
-    raw, env = out["raw_subgoal"], out["subgoal"]
-    assert ((raw[:, 0] < 0) | (raw[:, 0] > 4)).any() and (raw[:, 1].abs() > math.pi).any()
-    assert env[:, 0].min() >= 0 and env[:, 0].max() <= 4 and env[:, 1].double().abs().max() <= math.pi
-    torch.testing.assert_close(torch.cos(env[:, 1]), torch.cos(raw[:, 1]), atol=1e-5, rtol=0)  # wrapped, not clipped
-    _check_log_probs(pl, obs, out)
-    edge = pl.subgoal_to_env(torch.tensor([[5.0, math.pi], [-1.0, -math.pi], [1.0, 3 * math.pi / 2]], dtype=torch.float32))
-    assert edge[:, 0].tolist() == [4.0, 0.0, 1.0] and edge[:, 1].double().abs().max() <= math.pi
-    assert edge[2, 1].item() == pytest.approx(-math.pi / 2)
-    det = pl.act(obs, deterministic=True)  # goal-relative heads: at min(goal distance, 1.5 m) to start with
-    torch.testing.assert_close(det["subgoal"][:, 0], obs["goal"][:, 0].clamp(max=1.5), atol=0.1, rtol=0)
-
-
 @pytest.mark.parametrize("resolution", [64, 128])
 @pytest.mark.parametrize("cls,memory", [(Executor, "gru"), (Executor, "smt"), (FlatPolicy, "gru"), (FlatPolicy, "smt")])
 def test_recurrent_shapes(cls, memory, resolution):
@@ -209,14 +192,8 @@ def test_orthogonal_init(planner):
     _assert_orthogonal(ex.encoder.fc[0].weight, math.sqrt(2))
     _assert_orthogonal(ex.actor.weight, 0.01)
     _assert_orthogonal(ex.critic.weight, 1.0)
-    _assert_orthogonal(pl.convs[0].weight, math.sqrt(2))
-    for head in (pl.stop_logits, pl.subgoal_mean, pl.critic):  # MLP heads: hidden layer, then the output
-        _assert_orthogonal(head[0].weight, math.sqrt(2))
-    _assert_orthogonal(pl.stop_logits[-1].weight, 0.01)
-    _assert_orthogonal(pl.subgoal_mean[-1].weight, 0.01)
-    _assert_orthogonal(pl.critic[-1].weight, 1.0)
+    _assert_orthogonal(pl.convs[0].weight, math.sqrt(2))  # the heads: test_planner_init
     assert torch.all(ex.actor.bias == 0) and torch.all(ex.encoder.convs[0].bias == 0)
-    assert pl.subgoal_mean[-1].bias.tolist() == [0.0, 0.0]  # relative to (min(goal distance, 1.5 m), goal direction)
 
 
 def test_flops_and_matmul_speed(planner):
@@ -229,86 +206,6 @@ def test_flops_and_matmul_speed(planner):
     assert flops > conv1 + gru
     assert model_flops_per_step(Executor("smt", 64)) > 0 and model_flops_per_step(planner) > 0
     assert matmul_gflops(n=256, seconds=0.05) > 0
-
-
-def test_prior_planner_sets_no_subgoal_within_the_executors_radius():
-    """Given the executor's sub-goal radius, the sub-goals sent to the env lie at least
-    SUBGOAL_MARGIN beyond it (a nearer one pays the executor nothing), whatever the sample;
-    the raw sample, on which the log-prob is computed, is left as it was."""
-    raw = torch.tensor([[-0.3, 0.5], [0.0, 1.0], [0.1, -1.0], [0.3, 2.0], [5.0, 0.0]])
-    pl = PriorPlanner(rho_max=4.0, channels=(8, 8), hidden=64, subgoal_radius=0.2)
-    assert pl.subgoal_to_env(raw)[:, 0].tolist() == pytest.approx([0.25, 0.25, 0.25, 0.3, 4.0])
-    assert PriorPlanner(rho_max=4.0, channels=(8, 8), hidden=64).subgoal_to_env(raw)[:, 0].tolist() == pytest.approx(
-        [0.0, 0.0, 0.1, 0.3, 4.0])
-    from plex_ma.config import preset_defaults
-    assert build_policies(preset_defaults("cpu"))["planner"].min_subgoal_distance == pytest.approx(0.2 + SUBGOAL_MARGIN)
-
-
-def test_planner_heads_start_goal_relative():
-    """The heads start goal-relative: an untrained planner's mean sub-goal is (min(d, 1.5 m),
-    the goal's direction) whatever the map, it stops near the goal and rarely elsewhere."""
-    torch.manual_seed(0)
-    pl = PriorPlanner(rho_max=4.0, channels=(8, 8), hidden=64)
-    obs = pl.example_obs(64)
-    obs["goal"] = torch.stack([torch.linspace(0.0, 8.0, 64), torch.linspace(-3.0, 3.0, 64)], 1)
-    stop_d, sub_d, _ = pl(obs)
-    torch.testing.assert_close(sub_d.mean[:, 0], obs["goal"][:, 0].clamp(max=1.5), atol=0.05, rtol=0)
-    torch.testing.assert_close(sub_d.mean[:, 1], obs["goal"][:, 1], atol=0.05, rtol=0)
-    p_stop = stop_d.probs[:, 1]
-    d = obs["goal"][:, 0]
-    assert (p_stop[d < 0.1] > 0.4).all() and (p_stop[d > 0.3] < 0.02).all()
-    # greedy, it stops where a stop succeeds (success: within 0.2 m) and nowhere farther out
-    near = pl.example_obs(5)
-    near["goal"] = torch.tensor([[0.05, 0.0], [0.18, 1.0], [0.194, 0.5], [0.2, -2.0], [0.3, 3.0]])
-    assert pl.act(near, deterministic=True)["stop"].tolist() == [1, 1, 1, 0, 0]
-    # ... and the threshold follows the success distance it is built for
-    wide = PriorPlanner(rho_max=4.0, channels=(8, 8), hidden=64, stop_distance=0.36)
-    wide.load_state_dict({k: v for k, v in pl.state_dict().items() if not k.startswith("stop_skip")}, strict=False)
-    near["goal"][:, 0] = torch.tensor([0.05, 0.3, 0.35, 0.36, 0.4])
-    assert wide.act(near, deterministic=True)["stop"].tolist() == [1, 1, 1, 0, 0]
-    # the map and the ELI move the heads' output away from the goal-directed start only by learning
-    obs["ego_map"] = torch.rand_like(obs["ego_map"])
-    torch.testing.assert_close(pl(obs)[1].mean[:, 1], obs["goal"][:, 1], atol=0.05, rtol=0)
-
-
-def test_planner_offsets_shrink_near_the_goal():
-    """The heads' offsets from the goal-directed prior count in full from 1 m out, not at all
-    within 0.2 m, linearly between: near the goal the sub-goal is the goal."""
-    pl = PriorPlanner(rho_max=4.0, channels=(8, 8), hidden=64)
-    with torch.no_grad():
-        pl.subgoal_mean[-1].weight.zero_()
-        pl.subgoal_mean[-1].bias.copy_(torch.tensor([-0.4, 0.6]))  # a learned offset: 0.4 m nearer, 0.6 rad left
-    obs = pl.example_obs(4)
-    obs["goal"] = torch.tensor([[3.0, 0.2], [1.0, -0.5], [0.6, 1.0], [0.15, 2.0]])
-    mean = pl(obs)[1].mean
-    scale = torch.tensor([1.0, 1.0, 0.5, 0.0])
-    expect = torch.stack([obs["goal"][:, 0].clamp(max=1.5) - 0.4 * scale, obs["goal"][:, 1] + 0.6 * scale], 1)
-    torch.testing.assert_close(mean, expect)
-
-
-def test_executor_stop_prior_stops_near_the_subgoal():
-    """With a stop prior, an untrained executor's p(STOP) is 0.5 at the prior's distance
-    from its sub-goal, high nearer and negligible farther; without one it is ~0.25 anywhere."""
-    torch.manual_seed(0)
-    obs = Executor(resolution=40, gru_hidden=16).example_obs(5)
-    obs["subgoal"] = torch.tensor([[0.05, 0.0], [0.15, 1.0], [0.25, -1.0], [0.5, 0.0], [3.0, 2.0]])
-    starts = torch.ones(5, dtype=torch.bool)
-    for prior, expect in ((0.25, [0.98, 0.88, 0.5, 0.007, 0.0]), (None, [0.25] * 5)):
-        ex = Executor(resolution=40, gru_hidden=16, stop_prior=prior)
-        p_stop = torch.softmax(ex(obs, ex.initial_state(5), starts)[0], -1)[:, 0]
-        torch.testing.assert_close(p_stop, torch.tensor(expect), atol=0.02, rtol=0)
-
-
-def test_executor_heading_prior_turns_towards_the_subgoal():
-    """With a heading prior, an untrained executor turns towards a sub-goal to its left or
-    right, moves when it faces one, and (with the stop prior) still stops on it."""
-    torch.manual_seed(0)
-    obs = Executor(resolution=40, gru_hidden=16).example_obs(5)
-    obs["subgoal"] = torch.tensor([[2.0, 0.0], [2.0, 1.5], [2.0, -1.5], [2.0, 3.0], [0.05, 0.0]])
-    ex = Executor(resolution=40, gru_hidden=16, stop_prior=0.15, heading_prior=3.0)
-    p = torch.softmax(ex(obs, ex.initial_state(5), torch.ones(5, dtype=torch.bool))[0], -1)
-    assert p[:, 1:].argmax(-1)[:4].tolist() == [0, 1, 2, 1]  # forward, left, right; behind: left (sin 3 > 0)
-    assert p[0, 1] > 0.85 and p[1, 2] > 0.85 and p[2, 3] > 0.85 and p[4, 0] > 0.85
 
 
 def test_planner_actions():
@@ -338,28 +235,34 @@ def test_planner_sets_no_subgoal_within_the_executors_radius():
     assert Planner(rho_max=4.0, channels=(8, 8), hidden=64).subgoal_to_env(raw)[:, 0].tolist() == pytest.approx(
         [0.1, 0.0, 0.1, 0.3, 4.0])
     from plex_ma.config import preset_defaults
+    assert build_policies(preset_defaults("cpu"))["planner"].min_subgoal_distance == pytest.approx(0.2 + SUBGOAL_MARGIN)
 
 
 def test_untrained_policies_know_nothing_of_the_goal():
     """docs/spec.md section 6: no hand-set state-dependent term in any policy output. The
-    untrained planner's mean sub-goal stays near the agent and its p(stop) at its constant
-    starting value wherever the goal is; the untrained executor's four actions are about equally likely wherever its
-    sub-goal is."""
+    cpu preset's untrained planner sets its mean sub-goal at its constant start, 1 m ahead,
+    wherever the goal is (with a stop head instead, its p(stop) is its constant starting
+    value everywhere); the untrained executor's action probabilities are the same wherever
+    its sub-goal is."""
     torch.manual_seed(0)
     from plex_ma.config import preset_defaults, replace
 
-    pl = build_policies(replace(preset_defaults("cpu"), planner_prior=False))["planner"]
+    cfg = preset_defaults("cpu")
+    nets = build_policies(cfg)
+    pl = nets["planner"]
     obs = pl.example_obs(64)
     obs["goal"] = torch.stack([torch.linspace(0.0, 8.0, 64), torch.linspace(-3.0, 3.0, 64)], 1)
-    stop_d, sub_d, _ = pl(obs)
-    assert sub_d.mean.abs().max() < 0.2
+    _, sub_d, _ = pl(obs)
+    torch.testing.assert_close(sub_d.mean, torch.tensor([cfg.planner_subgoal_forward, 0.0]).expand(64, 2),
+                               atol=0.2, rtol=0)
+    stop_d, _, _ = build_policies(replace(cfg, planner_stop_radius=None))["planner"](obs)
     p_stop = torch.sigmoid(torch.tensor(STOP_INIT_LOGIT))  # a constant bias, the same in every state
     torch.testing.assert_close(stop_d.probs[:, 1], p_stop.expand(64), atol=0.01, rtol=0)
-    ex = Executor(resolution=40, gru_hidden=16)
+    ex = nets["executor"]
     ex_obs = ex.example_obs(5)
     ex_obs["subgoal"] = torch.tensor([[2.0, 0.0], [2.0, 1.5], [2.0, -1.5], [2.0, 3.0], [0.05, 0.0]])
     p = torch.softmax(ex(ex_obs, ex.initial_state(5), torch.ones(5, dtype=torch.bool))[0], -1)
-    torch.testing.assert_close(p, torch.full_like(p, 0.25), atol=0.02, rtol=0)
+    torch.testing.assert_close(p, p[:1].expand(5, -1), atol=0.02, rtol=0)
 
 
 def test_plan_features_are_positions_in_the_agents_frame():
@@ -374,8 +277,8 @@ def test_plan_features_are_positions_in_the_agents_frame():
     torch.testing.assert_close(plan_features(goal, None)[:, 2:], torch.zeros(2, 2))
 
 
-def test_prior_free_planner_init():
-    """Every layer of the prior-free planner under CleanRL's initialisation: no hand-set weight."""
+def test_planner_init():
+    """Every layer of the planner under CleanRL's initialisation: no hand-set weight."""
     pl = Planner(channels=(8, 8), hidden=64)
     for head, gain in ((pl.stop_logits, 0.01), (pl.subgoal_mean, 0.01), (pl.critic, 1.0)):
         _assert_orthogonal(head.mlp[0].weight, math.sqrt(2))
@@ -397,12 +300,11 @@ def test_cnn_min_resolution_is_the_smallest_image_the_executor_takes():
         RGBDEncoder(CNN_MIN_RESOLUTION - 1, 8)
 
 
-@pytest.mark.parametrize("cls", [Planner, PriorPlanner])
-def test_stored_map_plan_gives_the_same_planner_pass(cls):
+def test_stored_map_plan_gives_the_same_planner_pass():
     """The trainer stores the value-iteration read-out with each decision (``with_map_plan``):
     the PPO epochs' pass over it equals the pass that recomputes it, and it is really read."""
     torch.manual_seed(0)
-    net = cls(value_iteration=True, fine_map=True, subgoal_radius=0.2)
+    net = Planner(value_iteration=True, fine_map=True, subgoal_radius=0.2)
     gen = torch.Generator().manual_seed(1)
     obs = net.example_obs(4, gen)
     obs["ego_map"] = (obs["ego_map"] < 0.2).float()

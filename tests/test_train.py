@@ -328,8 +328,8 @@ def test_defaults_are_the_cpu_recipe_and_flat_methods_get_theirs():
     flat baselines get the cpu preset's flat departures; the paper preset restores the env's
     own (the paper's) settings; a flag on the command line still wins."""
     # the flat methods' update on every core (torch's default threads)
-    assert PRESETS["cpu"]("plex-gru") == {} and PRESETS["cpu"]("ppo-gru") == {"ppo_epochs": 4, "torch_threads": 0}
-    assert PRESETS["cpu"]("ppo-smt") == {"ppo_epochs": 4, "torch_threads": 0, "lr": 3e-4}  # its own sweep's best
+    assert PRESETS["cpu"]("plex-gru") == {} and PRESETS["cpu"]("ppo-gru") == {"torch_threads": 0}
+    assert PRESETS["cpu"]("ppo-smt") == {"torch_threads": 0, "lr": 3e-4}  # its own sweep's best
     for method in ("plex-gru", "plex-smt"):
         cfg = preset_defaults("cpu", method)
         assert replace(cfg, preset="cpu", method="plex-gru", run_dir=TrainConfig().run_dir) == TrainConfig(), method
@@ -339,6 +339,7 @@ def test_defaults_are_the_cpu_recipe_and_flat_methods_get_theirs():
     paper = preset_defaults("paper")
     assert (paper.env.n_ex, paper.env.subgoal_radius, paper.env.executor_stop_penalty) == (10, 0.5, 0.0)
     assert (paper.env.resolution, paper.n_pl, paper.executor_hidden, paper.planner_value_iteration) == (256, 128, 512, False)
+    assert (paper.gamma_ex, paper.planner_trunk_stride, paper.planner_stop_radius, paper.curriculum_steps) == (0.9, 1, None, 0)
     cfg = parse(["--preset", "cpu", "--resolution", "64", "--ppo-epochs", "4"])
     assert cfg.env.resolution == 64 and cfg.ppo_epochs == 4 and cfg.num_envs == TrainConfig().num_envs
     assert parse(["--preset", "cpu", "--method", "ppo-gru"]).ppo_epochs == 4
@@ -372,28 +373,29 @@ def test_env_settings_are_train_flags_that_reach_the_env(tmp_path):
     assert from_dict(flat) == cfg
 
 
-def test_saved_config_with_retired_settings_loads():
-    """A checkpoint's config from older code, with settings since retired (the teacher and the
-    planner's imitation, the planner's own PPO settings, the executor's goal skip at the value
-    every network now has, the executor's warm-up under random sub-goals), loads without them;
-    their flags no longer exist."""
+def test_saved_config_refuses_other_formats_and_ignores_retired_settings():
+    """A checkpoint of this format whose config holds retired settings (the teacher and the
+    planner's imitation, the planner's own PPO settings, the executor's warm-up, the priors
+    format 1 could hold) loads without them; their flags no longer exist. A checkpoint of
+    another format (format 1's networks could hold hand-set priors) is refused with one
+    error that names the format."""
+    from plex_ma.trainers.base import CHECKPOINT_FORMAT
+
     cfg = preset_defaults("cpu")
     retired = {"teacher": "map-los", "teacher_subgoal_steps": 260_000, "planner_imitation_steps": 724_000,
                "imitation_minibatches": 8, "planner_entropy_coef": None, "planner_target_kl": None,
                "planner_minibatches": 2, "executor_goal_skip": True, "planner_warmup_steps": 40_000,
-               "warmup_scenes": "open-room", "warmup_max_steps": 40}
+               "warmup_scenes": "open-room", "warmup_max_steps": 40, "planner_prior": False,
+               "executor_stop_prior": None, "executor_heading_prior": None}
     assert from_dict(dataclasses.asdict(cfg) | retired) == cfg
-    assert saved_config({"config": dataclasses.asdict(cfg) | retired}) == cfg
-    # a network these settings no longer build: one clear error that names the setting
-    with pytest.raises(CheckpointError, match="executor_goal_skip"):
-        saved_config({"config": dataclasses.asdict(cfg) | {"executor_goal_skip": False}})
-    # a setting added later reads as the value older checkpoints were trained with
-    older = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "executor_no_reversal"}
-    assert cfg.executor_no_reversal and not saved_config({"config": older}).executor_no_reversal
+    assert saved_config({"format": CHECKPOINT_FORMAT, "config": dataclasses.asdict(cfg) | retired}) == cfg
+    with pytest.raises(CheckpointError, match="checkpoint format 1 is not 2"):
+        saved_config({"format": 1, "config": dataclasses.asdict(cfg)})
     assert not preset_defaults("paper").executor_no_reversal
     for flag in ("--teacher-subgoal-steps", "--planner-imitation-steps", "--planner-minibatches",
                  "--planner-entropy-coef", "--planner-target-kl", "--executor-goal-skip",
-                 "--planner-warmup-steps", "--warmup-max-steps", "--warmup-scenes"):
+                 "--planner-warmup-steps", "--warmup-max-steps", "--warmup-scenes", "--executor-stop-prior",
+                 "--executor-heading-prior"):
         with pytest.raises(ValueError, match=f"unrecognized arguments: {flag}"):
             parse(["--preset", "smoke", flag, "100"])
 
@@ -436,8 +438,8 @@ def test_executor_alone_learns_to_reach_subgoals(tmp_path):
     (a random executor) to at least 0.6."""
     cfg = replace(
         preset_defaults("smoke"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1,
-        planner="random", random_subgoal_angle=0.5, resolution=64, executor_stop_prior=None,
-        executor_heading_prior=None, anneal_lr=False, n_ex=10, subgoal_radius=0.5, executor_stop_penalty=0.0,
+        planner="random", random_subgoal_angle=0.5, resolution=64, gamma_ex=0.9, executor_stop_bias=0.0,
+        anneal_lr=False, n_ex=10, subgoal_radius=0.5, executor_stop_penalty=0.0,
         executor_collision_reward=0.0,
         max_steps=40, total_steps=16_000, num_envs=8, rollout_steps=32, ppo_epochs=4, num_minibatches=2,
         progress=False, torch_threads=1, checkpoint_interval=1000)

@@ -9,7 +9,7 @@ import torch
 
 from plex_ma.envs.map_planner import _NEIGHBOURS, _distances
 from plex_ma.envs.rules import ELI_DIM
-from plex_ma.networks import Executor, Planner, PriorPlanner, ValueIteration, bellman, bellman_reference
+from plex_ma.networks import Executor, Planner, ValueIteration, bellman, bellman_reference
 
 
 def test_bellman_matches_dijkstra_on_a_random_grid():
@@ -81,13 +81,10 @@ def test_wall_with_a_gap_on_the_right_leads_right_and_its_mirror_left():
     assert _subgoal(wall[:, ::-1].copy(), (10.0, 0.0))[1] > 0.4
 
 
-def test_module_has_no_parameters_and_ignores_a_learned_cost_in_old_checkpoints():
-    """The cost is fixed (no parameters, no gradient); a planner saved while it was a learned
-    3x3 convolution (``vin.cost.weight`` / ``vin.cost.bias``) still loads, strictly."""
+def test_module_has_no_parameters():
+    """The cost is fixed: no parameters, no gradient."""
     pl = Planner(channels=(8, 8), hidden=64, value_iteration=True)
     assert not list(pl.vin.parameters())
-    old = pl.state_dict() | {"vin.cost.weight": torch.zeros(1, 2, 3, 3), "vin.cost.bias": torch.zeros(1)}
-    Planner(channels=(8, 8), hidden=64, value_iteration=True).load_state_dict(old)
     ego = (torch.rand(2, 2, 32, 32) < 0.2).float().requires_grad_()
     feats, _ = pl.vin(ego, torch.tensor([[6.0, 0.5], [1.5, 0.1]]))
     assert not feats.requires_grad
@@ -112,20 +109,3 @@ def test_stop_gradient_holds_with_the_value_iteration_planner():
         assert torch.equal(v, before[k]), k
     assert ELI_DIM == eli.shape[1]
 
-
-def test_untrained_prior_planner_follows_its_module():
-    """Far from the goal the untrained prior planner's mean sub-goal is the module's (the heads
-    start near zero); within 0.2 m of the goal it is the goal."""
-    torch.manual_seed(0)
-    pl = PriorPlanner(channels=(8, 8), hidden=64, value_iteration=True)
-    obs = pl.example_obs(1)
-    obs["ego_map"] = torch.zeros(1, 2, 32, 32)
-    obs["ego_map"][0, 0, 12, :] = 1.0
-    obs["ego_map"][0, 0, 12, 22:24] = 0.0
-    obs["goal"] = torch.tensor([[10.0, 0.0]])
-    _, sub, _ = pl(obs)
-    _, module = pl.vin(obs["ego_map"], obs["goal"])
-    assert torch.allclose(sub.mean, module, atol=0.05) and module[0, 1] < -0.4
-    obs["goal"] = torch.tensor([[0.15, 2.0]])
-    _, sub, _ = pl(obs)
-    assert torch.allclose(sub.mean, obs["goal"], atol=1e-5)

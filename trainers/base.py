@@ -23,7 +23,7 @@ from tqdm import tqdm
 from plex_ma.config import CURRICULUM_START_DISTANCE, TrainConfig, from_dict, setting
 from plex_ma.envs.rules import NavConfig
 from plex_ma.envs.sim.episodes import MAX_GEODESIC
-from plex_ma.networks import Executor, FlatMapPolicy, FlatPolicy, Planner, PriorPlanner
+from plex_ma.networks import Executor, FlatMapPolicy, FlatPolicy, Planner
 
 from . import distributed
 from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
@@ -31,31 +31,23 @@ from .device import resolve_device
 from .logger import MetricLogger, resident_memory_mib
 from .ppo import PPOConfig
 
-CHECKPOINT_FORMAT = 1
-# Config fields added after checkpoints were first written, with the value older ones had.
-LEGACY_CONFIG = {"planner_prior": True, "planner_value_iteration": False, "planner_fine_map": False, "planner_step_gamma": None,
-                 "executor_no_reversal": False}
-# Retired config fields and the one value the current networks build: a checkpoint saved
-# with another names the field in its error
-RETIRED_CONFIG = {"executor_goal_skip": True}
+CHECKPOINT_FORMAT = 2  # 2: the networks hold no hand-set priors (format 1's could)
 
 
 # The settings that shape the networks (and their action mask): a checkpoint loads only into a run with the same.
 ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_no_reversal")
-PLEX_ARCH_KEYS = ("planner_prior", "planner_value_iteration", "planner_fine_map", "planner_stop_radius",
+PLEX_ARCH_KEYS = ("planner_value_iteration", "planner_fine_map", "planner_stop_radius",
                    "planner_trunk_stride")  # ... and for the methods that read the ego map (the planner's)
 NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
 
 
 def saved_config(state: dict) -> TrainConfig:
-    """A checkpoint's config, with the fields older checkpoints lack filled in."""
+    """A checkpoint's config (a checkpoint of another format is refused: its networks may differ)."""
+    if state.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT} (this version's): "
+                              "another version of plex-ma wrote it; retrain it")
     try:
-        config = dict(state["config"])
-        for name, value in RETIRED_CONFIG.items():
-            if config.pop(name, value) != value:
-                raise CheckpointError(f"checkpoint config: it was trained with {name} other than {value!r}, "
-                                      "which this version no longer builds; retrain it")
-        return from_dict({**LEGACY_CONFIG, **config})
+        return from_dict(dict(state["config"]))
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint config is not valid: {e}") from None
 
@@ -89,13 +81,10 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
         kw = dict(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max, subgoal_radius=cfg.env.subgoal_radius,
                   init_std=cfg.planner_subgoal_std, value_iteration=cfg.planner_value_iteration,
                   fine_map=cfg.planner_fine_map, trunk_stride=cfg.planner_trunk_stride)
-        planner = (PriorPlanner(stop_distance=cfg.env.success_distance, **kw) if cfg.planner_prior
-                   else Planner(subgoal_forward=cfg.planner_subgoal_forward, stop_radius=cfg.planner_stop_radius, **kw))
+        planner = Planner(subgoal_forward=cfg.planner_subgoal_forward, stop_radius=cfg.planner_stop_radius, **kw)
         return {"planner": planner,
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
-                                     gru_hidden=cfg.executor_hidden,
-                                     stop_prior=cfg.executor_stop_prior, heading_prior=cfg.executor_heading_prior,
-                                     no_reversal=cfg.executor_no_reversal, stop_bias=cfg.executor_stop_bias)}
+                                     gru_hidden=cfg.executor_hidden, no_reversal=cfg.executor_no_reversal, stop_bias=cfg.executor_stop_bias)}
     flat = dict(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                 gru_hidden=cfg.executor_hidden, no_reversal=cfg.executor_no_reversal)
     if cfg.method == "ppo-gru-map":
@@ -224,8 +213,6 @@ class Trainer:
 
     def load_weights(self, state: dict, what: str = "the checkpoint") -> None:
         """The networks' weights from a checkpoint whose architecture settings match this run's."""
-        if state.get("format") != CHECKPOINT_FORMAT:
-            raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT}")
         saved = saved_config(state)
         for key in ARCH_KEYS + (PLEX_ARCH_KEYS if reads_ego_map(self.nets) else ()):
             if setting(saved, key) != setting(self.cfg, key):

@@ -2,14 +2,13 @@
 
 One module per part:
 
-- ``planner``: the prior-free :class:`Planner`, the old recipe's :class:`PriorPlanner`, and their
-  reading of the ego map, :class:`MapEncoder`;
+- ``planner``: :class:`Planner` and its reading of the ego map, :class:`MapEncoder`;
 - ``value_iteration``: :class:`ValueIteration` over the ego map and its Bellman updates
   (:func:`bellman`, compiled numba loops on the CPU; :func:`bellman_reference`);
 - ``executor``: :class:`Executor` and its RGB-D CNN, :class:`RGBDEncoder`;
 - ``memory``: the recurrent memories, :class:`GRUMemory` and :class:`SMTMemory`;
 - ``flat``: the flat baselines' :class:`FlatPolicy` and :class:`FlatMapPolicy`;
-- ``common``: what they share (``layer_init``, ``encode_polar``, ``wrap_angle``, ``as_tensor``).
+- ``common``: what they share (``layer_init``, ``encode_polar``, ``as_tensor``).
 
 Observations are dicts of tensors (numpy arrays are accepted and converted) with a
 leading batch dimension:
@@ -35,25 +34,21 @@ for hidden layers, 0.01 for policy heads, 1 for value heads.
 
 from plex_ma.envs.rules import ELI_DIM
 from plex_ma.networks.common import encode_polar, layer_init
-from plex_ma.networks.executor import EXECUTOR_STOP_SLOPE, Executor, ExecutorAct, RGBDEncoder
+from plex_ma.networks.executor import Executor, ExecutorAct, RGBDEncoder
 from plex_ma.networks.flat import FlatMapPolicy, FlatPolicy
 from plex_ma.networks.memory import GRUMemory, MultiHeadAttention, SMTMemory
-from plex_ma.networks.planner import (GOAL_FEATURES, MAP_PLAN, OFFSET_FULL_DISTANCE, OFFSET_ZERO_DISTANCE, PI32,
-                                      PLAN_FEATURES, STOP_INIT_LOGIT, STOP_PRIOR_MARGIN, STOP_PRIOR_SLOPE,
-                                      SUBGOAL_MARGIN, Head, MapEncoder, Planner, PlannerAct, PriorPlanner,
-                                      plan_features, planner_goal_features)
+from plex_ma.networks.planner import (GOAL_FEATURES, MAP_PLAN, PI32, PLAN_FEATURES, STOP_INIT_LOGIT, SUBGOAL_MARGIN,
+                                      Head, MapEncoder, Planner, PlannerAct, plan_features, planner_goal_features)
 from plex_ma.networks.value_iteration import (BELLMAN_UNREACHED, DIAGONALS, EGO_CELL, SUBGOAL_REACH, ValueIteration,
                                               bellman, bellman_reference)
 
 __all__ = [
     "ELI_DIM", "encode_polar", "layer_init",
-    "EXECUTOR_STOP_SLOPE", "Executor", "ExecutorAct", "RGBDEncoder",
+    "Executor", "ExecutorAct", "RGBDEncoder",
     "FlatMapPolicy", "FlatPolicy",
     "GRUMemory", "MultiHeadAttention", "SMTMemory",
-    "GOAL_FEATURES", "MAP_PLAN", "OFFSET_FULL_DISTANCE", "OFFSET_ZERO_DISTANCE", "PI32", "PLAN_FEATURES", "STOP_PRIOR_MARGIN",
-    "STOP_INIT_LOGIT", "STOP_PRIOR_SLOPE", "SUBGOAL_MARGIN", "Head", "MapEncoder", "Planner", "PlannerAct",
-    "PriorPlanner",
-    "plan_features", "planner_goal_features",
+    "GOAL_FEATURES", "MAP_PLAN", "PI32", "PLAN_FEATURES", "STOP_INIT_LOGIT", "SUBGOAL_MARGIN", "Head", "MapEncoder",
+    "Planner", "PlannerAct", "plan_features", "planner_goal_features",
     "BELLMAN_UNREACHED", "DIAGONALS", "EGO_CELL", "SUBGOAL_REACH", "ValueIteration", "bellman",
     "bellman_reference",
 ]

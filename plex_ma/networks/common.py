@@ -23,11 +23,6 @@ def encode_polar(vec: torch.Tensor) -> torch.Tensor:
     return torch.stack([vec[..., 0], torch.cos(vec[..., 1]), torch.sin(vec[..., 1])], dim=-1)
 
 
-def wrap_angle(a: torch.Tensor) -> torch.Tensor:
-    """Angles in radians wrapped to [-pi, pi]."""
-    return torch.atan2(torch.sin(a), torch.cos(a))
-
-
 def as_tensor(x, device: torch.device | None = None, dtype: torch.dtype | None = None) -> torch.Tensor:
     """``x`` (array, tensor or number) as a tensor on ``device``, sharing a numpy array's memory where it can."""
     if isinstance(x, np.ndarray):

@@ -11,11 +11,10 @@ from torch import nn
 from torch.distributions import Categorical
 
 from plex_ma.envs.rules import ELI_DIM
-from plex_ma.envs.sim.core import MOVE_FORWARD, NUM_ACTIONS, STOP, TURN_LEFT, TURN_RIGHT
+from plex_ma.envs.sim.core import NUM_ACTIONS, STOP, TURN_LEFT, TURN_RIGHT
 from plex_ma.networks.common import _conv_out_dim, as_tensor, encode_polar, layer_init
 from plex_ma.networks.memory import GRUMemory, SMTMemory
 
-EXECUTOR_STOP_SLOPE = 20.0  # executor STOP logit per metre nearer the sub-goal than its stop prior
 MASKED_LOGIT = -1e8  # a barred action's logit: probability 0 in float32, finite log-probs and entropy
 
 
@@ -71,13 +70,6 @@ class Executor(nn.Module):
     tokens, then a linear layer to the 128-d output. The output goes through tanh so the
     ELI sent to the planner stays in [-1, 1].
 
-    ``stop_prior`` (metres, or None): the STOP logit also gets a linear skip from
-    min(sub-goal distance, 2 m), started at ``EXECUTOR_STOP_SLOPE`` x (``stop_prior`` -
-    distance) + ln 3, so an untrained executor (three other logits near 0) has p(STOP) 0.5 at
-    ``stop_prior`` m from its sub-goal, 0.9 at 0.1 m nearer and below 2% from 0.25 m
-    farther. (Without it, executors trained under the cpu preset's STOP penalty never chose
-    STOP and turned in place at their sub-goals.)
-
     ``no_reversal``: the policy never undoes its previous turn within a sequence (a sub-goal,
     or the flat agents' episode): after LEFT, RIGHT has probability 0, and after RIGHT, LEFT.
     Without it greedy agents dithered LEFT, RIGHT, LEFT ... in front of obstacles until the
@@ -91,13 +83,9 @@ class Executor(nn.Module):
 
     def __init__(self, memory: str = "gru", resolution: int = 128, eli_dim: int = ELI_DIM,
                  smt_memory: int = 128, smt_heads: int = 8, gru_hidden: int = 512,
-                 stop_prior: float | None = None, heading_prior: float | None = None,
                  no_reversal: bool = False, stop_bias: float = 0.0):
         """``stop_bias``: a constant added to the actor's STOP bias at initialisation (the same
-        in every state), which sets how long an untrained executor's turns last.
-        ``heading_prior`` (logits, or None): the actor's goal inputs start
-        at MOVE_FORWARD += k cos(direction), TURN_LEFT += k sin, TURN_RIGHT -= k sin, so an
-        untrained policy turns towards its goal and moves when it faces it."""
+        in every state), which sets how long an untrained executor's turns last."""
         super().__init__()
         if memory not in ("gru", "smt"):
             raise ValueError(f"memory must be 'gru' or 'smt', got {memory!r}")
@@ -118,21 +106,6 @@ class Executor(nn.Module):
         self.critic = layer_init(nn.Linear(head_in, 1), std=1.0)
         with torch.no_grad():
             self.actor.bias[STOP] += stop_bias
-        if heading_prior is not None:
-            with torch.no_grad():  # goal inputs: (distance, cos, sin) after the eli_dim ELI features
-                self.actor.weight[MOVE_FORWARD, eli_dim + 1] += heading_prior
-                self.actor.weight[TURN_LEFT, eli_dim + 2] += heading_prior
-                self.actor.weight[TURN_RIGHT, eli_dim + 2] -= heading_prior
-        self.stop_skip = None
-        if stop_prior is not None:
-            self.stop_skip = nn.Linear(1, NUM_ACTIONS)
-            with torch.no_grad():
-                self.stop_skip.weight.zero_()
-                self.stop_skip.bias.zero_()
-                self.stop_skip.weight[STOP, 0] = -EXECUTOR_STOP_SLOPE
-                self.stop_skip.bias[STOP] = EXECUTOR_STOP_SLOPE * stop_prior + math.log(NUM_ACTIONS - 1)
-                # facing the sub-goal, the heading prior adds k to MOVE_FORWARD: so much more for STOP
-                self.stop_skip.bias[STOP] += heading_prior or 0.0
 
     @property
     def device(self) -> torch.device:
@@ -166,10 +139,7 @@ class Executor(nn.Module):
     def _heads(self, out: torch.Tensor, goal: torch.Tensor):
         eli = torch.tanh(self.eli_head(out))
         h = torch.cat([eli, goal], dim=-1)
-        logits = self.actor(h)
-        if self.stop_skip is not None:
-            logits = logits + self.stop_skip(goal[..., :1].clamp(max=2.0))
-        return logits, self.critic(h).squeeze(-1), eli
+        return self.actor(h), self.critic(h).squeeze(-1), eli
 
     def forward(self, obs: dict, state: torch.Tensor, starts):
         """One step for a batch: (logits (B, 4), value (B,), eli (B, 128), new state)."""

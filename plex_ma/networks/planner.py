@@ -1,7 +1,5 @@
-"""The PLEX planners and their reading of the ego map (:class:`MapEncoder`, which the flat
-policy with the map shares): the prior-free :class:`Planner` (``--no-planner-prior``, every
-output learned) and :class:`PriorPlanner` (the cpu preset's current default, whose outputs
-hold the hand-set terms that docs/spec.md section 6 bars)."""
+"""The PLEX planner (:class:`Planner`, every output learned) and its reading of the ego map
+(:class:`MapEncoder`, which the flat policy with the map shares)."""
 
 from __future__ import annotations
 
@@ -15,7 +13,7 @@ from torch.distributions import Categorical, Normal
 
 from plex_ma.envs.rules import ELI_DIM
 from plex_ma.envs.spaces import EGO_CHANNELS, EGO_SIZE
-from plex_ma.networks.common import _conv_out_dim, as_tensor, layer_init, wrap_angle
+from plex_ma.networks.common import _conv_out_dim, as_tensor, layer_init
 from plex_ma.networks.value_iteration import SUBGOAL_REACH, ValueIteration
 
 # float32(pi) is slightly *above* pi, so a float32 angle clamped to it can fail a float64
@@ -26,12 +24,7 @@ GOAL_FEATURES = 5  # planner_goal_features' width
 PLAN_FEATURES = 4  # plan_features' width
 SUBGOAL_MARGIN = 0.05  # m: sub-goals lie at least this far beyond the executor's sub-goal radius
 MAP_PLAN = "map_plan"  # observation key of a stored value-iteration read-out (MapEncoder.map_plan)
-STOP_INIT_LOGIT = -3.0  # Planner's constant starting stop bias: p(stop) ~0.05 in every state
-# PriorPlanner's hand-set terms (the old recipe, which docs/spec.md section 6 bars from the defaults):
-STOP_PRIOR_MARGIN = 0.005  # m: its untrained p(stop) is 0.5 this far inside the success distance
-STOP_PRIOR_SLOPE = 200.0  # stop logit - continue logit per metre nearer the goal than that
-OFFSET_FULL_DISTANCE = 1.0  # m: from here out its sub-goal heads' offsets count in full ...
-OFFSET_ZERO_DISTANCE = 0.2  # m: ... and from here in not at all (the sub-goal is the goal), linear between
+STOP_INIT_LOGIT = -3.0  # the stop head's constant starting bias: p(stop) ~0.05 in every state
 
 
 class PlannerAct(TypedDict):
@@ -197,19 +190,17 @@ class Planner(MapEncoder):
         self.min_subgoal_distance = 0.0 if subgoal_radius is None else min(subgoal_radius + SUBGOAL_MARGIN, rho_max)
         self.fc = nn.Sequential(layer_init(nn.Linear(self.map_dim + eli_dim + GOAL_FEATURES + self.vin_dim, hidden)),
                                 nn.ReLU())
-        self._build_heads(hidden + GOAL_FEATURES + PLAN_FEATURES, head_hidden)
-        if subgoal_forward:  # a constant start of the sub-goal mean, this far ahead in every state
-            with torch.no_grad():
-                self.subgoal_mean.linear.bias[0] += subgoal_forward
-        self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
-
-    def _build_heads(self, feat: int, head_hidden: int) -> None:
-        if self.stop_radius is None:
+        feat = hidden + GOAL_FEATURES + PLAN_FEATURES
+        if stop_radius is None:
             self.stop_logits = Head(feat, head_hidden, 2, 0.01)
             with torch.no_grad():  # a constant, the same in every state (docs/spec.md section 6 allows it)
                 self.stop_logits.linear.bias[1] = STOP_INIT_LOGIT
         self.subgoal_mean = Head(feat, head_hidden, 2, 0.01)
         self.critic = Head(feat, head_hidden, 1, 1.0)
+        if subgoal_forward:  # a constant start of the sub-goal mean, this far ahead in every state
+            with torch.no_grad():
+                self.subgoal_mean.linear.bias[0] += subgoal_forward
+        self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
 
     def encode(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """The trunk: (FC output (B, hidden), goal features (B, GOAL_FEATURES), the raw goal
@@ -289,99 +280,3 @@ class Planner(MapEncoder):
         return {"ego_map": torch.rand(batch, EGO_CHANNELS, EGO_SIZE, EGO_SIZE, generator=generator),
                 "goal": torch.rand(batch, 2, generator=generator) * torch.tensor([10.0, 2 * math.pi]) - torch.tensor([0.0, math.pi]),
                 "eli": torch.randn(batch, self.eli_dim, generator=generator)}
-
-
-class PriorPlanner(Planner):
-    """The old recipe's planner (``--planner-prior``), kept as a named option with its own
-    results: its outputs hold hand-set terms that docs/spec.md section 6 bars from the
-    defaults. Planner: ego map CNN + ELI + goal -> 512 -> (+ goal) -> MLP heads: stop logits,
-    Gaussian sub-goal, value.
-
-    The paper gives the trunk (conv 4x4/2, conv 3x3/1, flatten, concatenate the ELI, FC 512,
-    concatenate the goal vector) and leaves the heads open. Here the goal features
-    (:func:`planner_goal_features`) also enter the FC layer, so that map and goal interact,
-    and each head is an MLP (``head_hidden`` units) over (trunk, goal features). With linear
-    heads on (distance, cos, sin), as the text reads literally, the sub-goal direction cannot
-    follow the goal's: a planner trained with them over the oracle executor never reached the
-    goal.
-
-    The heads answer relative to the goal and start goal-directed:
-    - sub-goal mean = (min(goal distance, ``prior_distance``), goal direction) + the head's
-      output x a scale that rises linearly from 0 at ``OFFSET_ZERO_DISTANCE`` (0.2 m) to 1 at
-      ``OFFSET_FULL_DISTANCE`` (1 m) from the goal, so an untrained planner points at the
-      goal, ``prior_distance`` (1.5 m) away at most, directions wrap round the goal's
-      direction rather than round +-pi, and near the goal the sub-goal is the goal up to an
-      offset that shrinks to nothing (with unscaled offsets, trained planners set sub-goals
-      within the executor's radius when the goal was just outside the success distance, and
-      timed out there);
-    - stop logits = the head's output + a linear skip from the goal features, started at
-      ``STOP_PRIOR_SLOPE`` x (``stop_distance`` - ``STOP_PRIOR_MARGIN`` - distance): with the
-      success distance 0.2 m, p(stop) is 0.73 at 0.19 m, 0.27 at 0.2 m and below 2% beyond
-      0.215 m, so a greedy planner stops where a stop succeeds (< 0.2 m); the head's learned
-      output moves that threshold by only 5 mm per unit of logit.
-
-    The map reading (the trunk's convolutions and the value-iteration module) is
-    :class:`MapEncoder`'s, whose ``forward`` this class's replaces.
-
-    Sub-goal action: the policy samples an *unbounded* raw (rho, theta) from two Gaussians
-    with state-dependent means and state-independent learnable log-stds (started at std
-    ``init_std``). The raw sample is what the rollout buffer stores and what ``log_prob`` is
-    computed on; only the copy sent to the environment is mapped into the action box by
-    ``subgoal_to_env``: rho is clipped to [``min_subgoal_distance``, rho_max] and theta is
-    wrapped to [-pi, pi] (wrapping, unlike clipping, keeps the direction the sample points
-    to). Given the executor's ``subgoal_radius``, ``min_subgoal_distance`` lies
-    ``SUBGOAL_MARGIN`` beyond it: a nearer sub-goal pays the executor nothing
-    (envs/rules.py), so it would STOP on the spot, and a greedy planner that does not stop
-    there would repeat it until the time-out.
-    """
-
-    def __init__(self, stop_distance: float = 0.2, prior_distance: float = 1.5, **kw):
-        super().__init__(**kw)
-        self.prior_distance = min(prior_distance, self.rho_max)
-        self.stop_skip = nn.Linear(GOAL_FEATURES, 2)
-        with torch.no_grad():
-            self.stop_skip.weight.zero_()
-            self.stop_skip.bias.zero_()
-            # stop logit - continue logit ~ slope * (stop distance - margin - min(goal distance, 2)) (goal feature 4)
-            self.stop_skip.weight[1, 4] = -STOP_PRIOR_SLOPE
-            self.stop_skip.bias[1] = STOP_PRIOR_SLOPE * (stop_distance - STOP_PRIOR_MARGIN)
-
-    def _build_heads(self, feat: int, head_hidden: int) -> None:
-        feat -= PLAN_FEATURES  # its heads read the FC output and the goal features only
-
-        def mlp(out, std):
-            return nn.Sequential(layer_init(nn.Linear(feat, head_hidden)), nn.ReLU(),
-                                 layer_init(nn.Linear(head_hidden, out), std=std))
-
-        self.stop_logits, self.subgoal_mean, self.critic = mlp(2, 0.01), mlp(2, 0.01), mlp(1, 1.0)
-
-    def features(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(B, hidden + GOAL_FEATURES): the trunk's output and the goal features; and the
-        value-iteration module's sub-goal (B, 2) (None without the module)."""
-        h, goal, _, vin_subgoal = self.encode(obs)
-        return torch.cat([h, goal], dim=1), vin_subgoal
-
-    def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
-        """(stop distribution, sub-goal distribution over raw (rho, theta), value (B,))."""
-        h, vin_subgoal = self.features(obs)
-        goal = as_tensor(obs["goal"], h.device, torch.float32)
-        stop = Categorical(logits=self.stop_logits(h) + self.stop_skip(h[:, -GOAL_FEATURES:]))
-        prior = torch.stack([goal[:, 0].clamp(max=self.prior_distance), goal[:, 1]], dim=1)
-        scale = ((goal[:, :1] - OFFSET_ZERO_DISTANCE) / (OFFSET_FULL_DISTANCE - OFFSET_ZERO_DISTANCE)).clamp(0.0, 1.0)
-        if vin_subgoal is not None:
-            # the value-iteration module's sub-goal, blended into the goal with the same
-            # scale as the offsets (its direction taken the short way round from the goal's)
-            turn = wrap_angle(vin_subgoal[:, 1] - goal[:, 1])
-            vin_prior = torch.stack([vin_subgoal[:, 0], goal[:, 1] + turn], dim=1)
-            prior = prior + scale * (vin_prior - prior)
-        mean = self.subgoal_mean(h) * scale + prior
-        subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
-        return stop, subgoal, self.critic(h).squeeze(-1)
-
-    def subgoal_to_env(self, subgoal: torch.Tensor) -> torch.Tensor:  # raw (rho, theta)
-        """Map raw samples into the action box: rho clipped to [min_subgoal_distance, rho_max],
-        theta wrapped."""
-        rho = subgoal[..., 0].clamp(self.min_subgoal_distance, self.rho_max)
-        theta = wrap_angle(subgoal[..., 1]).clamp(-PI32, PI32)
-        return torch.stack([rho, theta], dim=-1)
-

@@ -52,8 +52,6 @@ class ValueIteration(nn.Module):
         self.cell = EGO_CELL / 2 if fine else EGO_CELL
         self.s = 2 * BatchedSim.ego_size if fine else BatchedSim.ego_size
         self.iterations = ITERATIONS[fine] if iterations is None else iterations
-        # checkpoints saved while the cost was a learned convolution hold its weights: ignored
-        self._register_load_state_dict_pre_hook(_drop_learned_cost)
         s, r = self.s, int(SUBGOAL_REACH / self.cell)
         self.reach_cells = r
         rows = torch.arange(s, dtype=torch.float32)
@@ -125,11 +123,6 @@ class ValueIteration(nn.Module):
                            rho[:, None] / SUBGOAL_REACH,
                            torch.cos(theta)[:, None], torch.sin(theta)[:, None]], dim=1)
         return feats, torch.stack([rho, theta], dim=1)
-
-
-def _drop_learned_cost(state_dict, prefix, *args):
-    for k in ("cost.weight", "cost.bias"):
-        state_dict.pop(prefix + k, None)
 
 
 def bellman(cost: torch.Tensor, sources: torch.Tensor, iterations: int) -> torch.Tensor:
