@@ -109,7 +109,8 @@ class MapPlannerPolicy:
 
 class ValueIterationPlannerPolicy:
     """The value-iteration module's sub-goal alone (:class:`~plex_ma.networks.ValueIteration`,
-    which has no weights): the prior the learned planner offsets, on the 0.5 m cells or with
+    which has no weights): the hand-written planner that the learned one is measured
+    against, whose sub-goal the learned planner reads as a feature, on the 0.5 m cells or with
     ``fine_map`` the 0.25 m quarter cells (as a given planner network's own module does).
     It reads the planner's observations only and stops as the map planner does."""
 
