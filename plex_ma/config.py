@@ -100,7 +100,7 @@ class TrainConfig:
     """PLEX only: a constant added to the untrained executor's STOP logit, the same in every state (it sets how long its first turns last)"""
     planner_subgoal_forward: float = 1.0
     """PLEX only: the untrained sub-goal mean's constant start, this many metres ahead in every state"""
-    planner_stop_radius: float | None = 0.15
+    planner_stop_radius: float | None = 0.2
     """PLEX only: no stop head; the planner stops when its sampled sub-goal lies within this many metres of the agent (None: a learned stop head)"""
     executor_no_reversal: bool = True
     """the executor (and the flat policies, which share its network) never undoes its previous turn within a sub-goal (or episode): no RIGHT right after LEFT, nor LEFT after RIGHT"""
@@ -108,7 +108,7 @@ class TrainConfig:
     """PLEX only: the planner also reads a value-iteration module over its ego map (networks.ValueIteration; the paper's planner has none)"""
     planner_fine_map: bool = True
     """the value-iteration module plans on the ego map's 0.25 m quarter cells (64 x 64) instead of its 0.5 m cells"""
-    planner_trunk_stride: int = 2
+    planner_trunk_stride: int = 1
     """the stride of the planner's second map convolution, which the map arm shares (the paper's: 1, 10,816 features; 2: 3,136)"""
     executor_hidden: int = 128
     """GRU hidden size of the executor and the flat GRU policy (512 in the paper)"""
