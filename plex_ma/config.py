@@ -100,8 +100,6 @@ class TrainConfig:
     """PLEX only: a constant added to the untrained executor's STOP logit, the same in every state (it sets how long its first turns last)"""
     planner_subgoal_forward: float = 1.0
     """PLEX only: the untrained sub-goal mean's constant start, this many metres ahead in every state"""
-    planner_stop_radius: float | None = 0.2
-    """PLEX only: no stop head; the planner stops when its sampled sub-goal lies within this many metres of the agent (None: a learned stop head)"""
     executor_no_reversal: bool = True
     """the executor (and the flat policies, which share its network) never undoes its previous turn within a sub-goal (or episode): no RIGHT right after LEFT, nor LEFT after RIGHT"""
     planner_value_iteration: bool = True
@@ -192,7 +190,7 @@ def paper_recipe(method: str) -> dict:
     return env | dict(total_steps=30_000_000, num_envs=16, resolution=256, rollout_steps=128, n_pl=128, lr=2.5e-4,
                       planner_lr=None, anneal_lr=False, ppo_epochs=4, gamma_ex=0.9, executor_hidden=512,
                       executor_no_reversal=False, executor_stop_bias=0.0, planner_subgoal_forward=0.0,
-                      planner_stop_radius=None, planner_trunk_stride=1, curriculum_steps=0,
+                      planner_trunk_stride=1, curriculum_steps=0,
                       planner_value_iteration=False, planner_fine_map=False, planner_step_gamma=None,
                       torch_threads=0)
 
@@ -245,8 +243,6 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(not (cfg.planner != "learn" and cfg.executor == "oracle"), "executor",
          "with --executor oracle the planner must learn (nothing would be trained)")
     need(-20 <= cfg.executor_stop_bias <= 20, "executor_stop_bias", "must be in [-20, 20] logits")
-    need(cfg.planner_stop_radius is None or 0 < cfg.planner_stop_radius <= 1, "planner_stop_radius",
-         "must be in (0, 1] metres")
     need(cfg.planner_trunk_stride in (1, 2), "planner_trunk_stride", "must be 1 or 2")
     need(0 <= cfg.planner_subgoal_forward <= cfg.env.rho_max, "planner_subgoal_forward", "must be in [0, rho_max] metres")
     need(0.5 < cfg.random_subgoal_distance <= cfg.env.rho_max, "random_subgoal_distance", "must be in (0.5, rho_max]")

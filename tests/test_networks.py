@@ -241,21 +241,20 @@ def test_planner_sets_no_subgoal_within_the_executors_radius():
 def test_untrained_policies_know_nothing_of_the_goal():
     """docs/spec.md section 6: no hand-set state-dependent term in any policy output. The
     cpu preset's untrained planner sets its mean sub-goal at its constant start, 1 m ahead,
-    wherever the goal is (with a stop head instead, its p(stop) is its constant starting
-    value everywhere); the untrained executor's action probabilities are the same wherever
+    wherever the goal is, and its p(stop) is the stop head's constant start everywhere; the
+    untrained executor's action probabilities are the same wherever
     its sub-goal is."""
     torch.manual_seed(0)
-    from plex_ma.config import preset_defaults, replace
+    from plex_ma.config import preset_defaults
 
     cfg = preset_defaults("cpu")
     nets = build_policies(cfg)
     pl = nets["planner"]
     obs = pl.example_obs(64)
     obs["goal"] = torch.stack([torch.linspace(0.0, 8.0, 64), torch.linspace(-3.0, 3.0, 64)], 1)
-    _, sub_d, _ = pl(obs)
+    stop_d, sub_d, _ = pl(obs)
     torch.testing.assert_close(sub_d.mean, torch.tensor([cfg.planner_subgoal_forward, 0.0]).expand(64, 2),
                                atol=0.2, rtol=0)
-    stop_d, _, _ = build_policies(replace(cfg, planner_stop_radius=None))["planner"](obs)
     p_stop = torch.sigmoid(torch.tensor(STOP_INIT_LOGIT))  # a constant bias, the same in every state
     torch.testing.assert_close(stop_d.probs[:, 1], p_stop.expand(64), atol=0.01, rtol=0)
     ex = nets["executor"]
@@ -336,26 +335,4 @@ def test_constant_starts_are_the_same_in_every_state():
     torch.testing.assert_close(p[:, STOP], torch.full((5,), p_stop), atol=0.01, rtol=0)
     torch.testing.assert_close(p[:, 1:], torch.full((5, 3), (1 - p_stop) / 3), atol=0.02, rtol=0)  # the moves
 
-
-def test_planner_stop_radius_stops_on_its_own_subgoal():
-    """--planner-stop-radius: no stop head; a decision stops exactly when its sampled (or,
-    greedy, mean) sub-goal lies within the radius of the agent, and its log-prob is the
-    Gaussian density of that sample alone."""
-    torch.manual_seed(0)
-    net = Planner(stop_radius=0.2, subgoal_radius=0.2)
-    assert not hasattr(net, "stop_logits")
-    obs = net.example_obs(256)
-    with torch.no_grad():
-        net.subgoal_log_std.fill_(math.log(0.3))
-    act = net.act(obs)
-    near = torch.hypot(act["raw_subgoal"][:, 0], act["raw_subgoal"][:, 1]) < 0.2
-    assert near.any() and not near.all()
-    assert torch.equal(act["stop"], near.long())
-    _, sub_d, _ = net(obs)
-    torch.testing.assert_close(act["log_prob"], sub_d.log_prob(act["raw_subgoal"]).sum(-1))
-    log_prob, entropy, _ = net.evaluate_actions(obs, act["stop"], act["raw_subgoal"])
-    torch.testing.assert_close(log_prob, act["log_prob"])
-    torch.testing.assert_close(entropy, sub_d.entropy().sum(-1))
-    assert net.act(obs, deterministic=True)["stop"].all()  # untrained: the mean is near the agent
-    assert not Planner(stop_radius=0.2, subgoal_forward=1.0).act(obs, deterministic=True)["stop"].any()
 

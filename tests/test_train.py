@@ -339,7 +339,7 @@ def test_defaults_are_the_cpu_recipe_and_flat_methods_get_theirs():
     paper = preset_defaults("paper")
     assert (paper.env.n_ex, paper.env.subgoal_radius, paper.env.executor_stop_penalty) == (10, 0.5, 0.0)
     assert (paper.env.resolution, paper.n_pl, paper.executor_hidden, paper.planner_value_iteration) == (256, 128, 512, False)
-    assert (paper.gamma_ex, paper.planner_trunk_stride, paper.planner_stop_radius, paper.curriculum_steps) == (0.9, 1, None, 0)
+    assert (paper.gamma_ex, paper.planner_trunk_stride, paper.curriculum_steps) == (0.9, 1, 0)
     cfg = parse(["--preset", "cpu", "--resolution", "64", "--ppo-epochs", "4"])
     assert cfg.env.resolution == 64 and cfg.ppo_epochs == 4 and cfg.num_envs == TrainConfig().num_envs
     assert parse(["--preset", "cpu", "--method", "ppo-gru"]).ppo_epochs == 4
@@ -376,7 +376,7 @@ def test_env_settings_are_train_flags_that_reach_the_env(tmp_path):
 def test_saved_config_refuses_other_formats_and_ignores_retired_settings():
     """A checkpoint of this format whose config holds retired settings (the teacher and the
     planner's imitation, the planner's own PPO settings, the executor's warm-up, the priors
-    format 1 could hold) loads without them; their flags no longer exist. A checkpoint of
+    format 1 could hold; a flat method's stop radius) loads without them; their flags no longer exist. A checkpoint of
     another format (format 1's networks could hold hand-set priors) is refused with one
     error that names the format."""
     from plex_ma.trainers.base import CHECKPOINT_FORMAT
@@ -391,11 +391,18 @@ def test_saved_config_refuses_other_formats_and_ignores_retired_settings():
     assert saved_config({"format": CHECKPOINT_FORMAT, "config": dataclasses.asdict(cfg) | retired}) == cfg
     with pytest.raises(CheckpointError, match="checkpoint format 1 is not 2"):
         saved_config({"format": 1, "config": dataclasses.asdict(cfg)})
+    # a PLEX planner that stopped by its sub-goal's distance has no stop head: refused by name;
+    # a flat method's config held the same key without using it
+    with pytest.raises(CheckpointError, match="--planner-stop-radius"):
+        saved_config({"format": CHECKPOINT_FORMAT, "config": dataclasses.asdict(cfg) | {"planner_stop_radius": 0.2}})
+    flat = preset_defaults("cpu", "ppo-gru")
+    assert saved_config({"format": CHECKPOINT_FORMAT,
+                         "config": dataclasses.asdict(flat) | {"planner_stop_radius": 0.2}}) == flat
     assert not preset_defaults("paper").executor_no_reversal
     for flag in ("--teacher-subgoal-steps", "--planner-imitation-steps", "--planner-minibatches",
                  "--planner-entropy-coef", "--planner-target-kl", "--executor-goal-skip",
                  "--planner-warmup-steps", "--warmup-max-steps", "--warmup-scenes", "--executor-stop-prior",
-                 "--executor-heading-prior"):
+                 "--executor-heading-prior", "--planner-stop-radius"):
         with pytest.raises(ValueError, match=f"unrecognized arguments: {flag}"):
             parse(["--preset", "smoke", flag, "100"])
 
@@ -459,11 +466,11 @@ def test_plex_learns_from_the_reward_alone(tmp_path):
     64,000 steps (about two and a half minutes of two cores). The untrained executor reaches
     its sub-goal in none of its first turns and an episode's reward is negative (the
     planner's constant sub-goal, 1 m ahead, leads nowhere in particular); after training the
-    executor reaches 0.56 of its sub-goals over the last three updates and the episodes end
-    nearer the goal than they began (reward +1.98 to +2.00 there; its lowest, -4.2),
+    executor reaches 0.91 of its sub-goals over the last three updates and the episodes end
+    nearer the goal than they began (reward +2.90 to +3.32 there; its lowest, -1.90),
     measured with ``train --scenes open-room --num-scenes 1 --num-envs 16 --max-steps 100
-    --total-steps 64000``. The planner does not yet stop there (training success at most
-    0.06)."""
+    --total-steps 64000``. The planner rarely stops in the right place yet (training success
+    at most 0.11)."""
     cfg = replace(preset_defaults("cpu"), run_dir=str(tmp_path / "run"), scenes="open-room", num_scenes=1,
                   num_envs=16, max_steps=100, total_steps=64_000, progress=False, record_interval=0)
     t = make_trainer(validate(cfg))
@@ -473,8 +480,8 @@ def test_plex_learns_from_the_reward_alone(tmp_path):
     lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     ex = [d["metrics/executor_success"] for d in lines if "metrics/executor_success" in d]
     reward = [d["reward"] for d in lines if "reward" in d]
-    assert ex[0] < 0.2 and np.mean(ex[-3:]) >= 0.45, (ex[:3], ex[-3:])
-    assert min(reward) < -2 and np.mean(reward[-3:]) > 1.0, (min(reward), reward[-3:])
+    assert ex[0] < 0.2 and np.mean(ex[-3:]) >= 0.7, (ex[:3], ex[-3:])
+    assert min(reward) < -1.5 and np.mean(reward[-3:]) > 2.0, (min(reward), reward[-3:])
 
 
 def test_training_counts_episodes_ended_by_planner_stop(tmp_path):

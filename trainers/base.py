@@ -36,8 +36,8 @@ CHECKPOINT_FORMAT = 2  # 2: the networks hold no hand-set priors (format 1's cou
 
 # The settings that shape the networks (and their action mask): a checkpoint loads only into a run with the same.
 ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_no_reversal")
-PLEX_ARCH_KEYS = ("planner_value_iteration", "planner_fine_map", "planner_stop_radius",
-                   "planner_trunk_stride")  # ... and for the methods that read the ego map (the planner's)
+PLEX_ARCH_KEYS = ("planner_value_iteration", "planner_fine_map",
+                  "planner_trunk_stride")  # ... and for the methods that read the ego map (the planner's)
 NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
 
 
@@ -47,7 +47,11 @@ def saved_config(state: dict) -> TrainConfig:
         raise CheckpointError(f"checkpoint format {state.get('format')!r} is not {CHECKPOINT_FORMAT} (this version's): "
                               "another version of plex-ma wrote it; retrain it")
     try:
-        return from_dict(dict(state["config"]))
+        config = dict(state["config"])
+        if str(config.get("method")).startswith("plex") and config.get("planner_stop_radius") is not None:
+            raise CheckpointError("checkpoint's planner stops by its sub-goal's distance (--planner-stop-radius, "
+                                  "since removed) and has no stop head: retrain it")
+        return from_dict(config)
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint config is not valid: {e}") from None
 
@@ -81,7 +85,7 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
         kw = dict(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max, subgoal_radius=cfg.env.subgoal_radius,
                   init_std=cfg.planner_subgoal_std, value_iteration=cfg.planner_value_iteration,
                   fine_map=cfg.planner_fine_map, trunk_stride=cfg.planner_trunk_stride)
-        planner = Planner(subgoal_forward=cfg.planner_subgoal_forward, stop_radius=cfg.planner_stop_radius, **kw)
+        planner = Planner(subgoal_forward=cfg.planner_subgoal_forward, **kw)
         return {"planner": planner,
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
                                      gru_hidden=cfg.executor_hidden, no_reversal=cfg.executor_no_reversal, stop_bias=cfg.executor_stop_bias)}

@@ -171,30 +171,24 @@ class Planner(MapEncoder):
     ``min_subgoal_distance`` lies ``SUBGOAL_MARGIN`` beyond it: a nearer sub-goal pays the
     executor nothing (envs/rules.py), so it would STOP on the spot.
 
-    With ``stop_radius`` (``--planner-stop-radius``) there is no stop head: the planner stops
-    when its sampled sub-goal lies within ``stop_radius`` of the agent, so the action is the
-    sample alone and its log-prob is the Gaussian's. A planner that has learned to send the
-    executor to the goal then stops where the goal is its own position.
     """
 
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
                  map_size: int = 32, init_std: float = 0.5, head_hidden: int = 256,
                  value_iteration: bool = False, subgoal_radius: float | None = None, fine_map: bool = False,
-                 subgoal_forward: float = 0.0, stop_radius: float | None = None, trunk_stride: int = 1):
+                 subgoal_forward: float = 0.0, trunk_stride: int = 1):
         # ``convs`` and ``vin`` (the map reading) keep their names: checkpoints key on them
         super().__init__(ego_channels, channels, map_size, value_iteration, fine_map, trunk_stride)
         self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
-        self.stop_radius = stop_radius  # None: a stop head; else stop = a sampled sub-goal this near the agent
         # no sub-goal within the executor's radius (None: any distance)
         self.min_subgoal_distance = 0.0 if subgoal_radius is None else min(subgoal_radius + SUBGOAL_MARGIN, rho_max)
         self.fc = nn.Sequential(layer_init(nn.Linear(self.map_dim + eli_dim + GOAL_FEATURES + self.vin_dim, hidden)),
                                 nn.ReLU())
         feat = hidden + GOAL_FEATURES + PLAN_FEATURES
-        if stop_radius is None:
-            self.stop_logits = Head(feat, head_hidden, 2, 0.01)
-            with torch.no_grad():  # a constant, the same in every state (docs/spec.md section 6 allows it)
-                self.stop_logits.linear.bias[1] = STOP_INIT_LOGIT
+        self.stop_logits = Head(feat, head_hidden, 2, 0.01)
+        with torch.no_grad():  # a constant, the same in every state (docs/spec.md section 6 allows it)
+            self.stop_logits.linear.bias[1] = STOP_INIT_LOGIT
         self.subgoal_mean = Head(feat, head_hidden, 2, 0.01)
         self.critic = Head(feat, head_hidden, 1, 1.0)
         if subgoal_forward:  # a constant start of the sub-goal mean, this far ahead in every state
@@ -227,18 +221,16 @@ class Planner(MapEncoder):
         h, goal, raw_goal, vin_subgoal = self.encode(obs)
         return torch.cat([h, goal, plan_features(raw_goal, vin_subgoal)], dim=1)
 
-    def forward(self, obs: dict) -> tuple[Categorical | None, Normal, torch.Tensor]:
-        """(stop distribution (None with ``stop_radius``), sub-goal distribution over raw
-        (forward, left) positions, value (B,))."""
+    def forward(self, obs: dict) -> tuple[Categorical, Normal, torch.Tensor]:
+        """(stop distribution, sub-goal distribution over raw (forward, left) positions,
+        value (B,))."""
         h = self.features(obs)
         mean = self.subgoal_mean(h)
         subgoal = Normal(mean, self.subgoal_log_std.exp().expand_as(mean))
-        stop = None if self.stop_radius is not None else Categorical(logits=self.stop_logits(h))
-        return stop, subgoal, self.critic(h).squeeze(-1)
+        return Categorical(logits=self.stop_logits(h)), subgoal, self.critic(h).squeeze(-1)
 
-    def _log_prob_entropy(self, stop_d: Categorical | None, sub_d: Normal, stop: torch.Tensor, subgoal: torch.Tensor):
-        if stop_d is None:  # the stop follows from the sampled sub-goal: its density is the action's
-            return sub_d.log_prob(subgoal).sum(-1), sub_d.entropy().sum(-1)
+    @staticmethod
+    def _log_prob_entropy(stop_d: Categorical, sub_d: Normal, stop: torch.Tensor, subgoal: torch.Tensor):
         # The sub-goal only matters when the planner continues (stop == 0), so its
         # log-prob only counts then. The entropy is H(stop) + H(subgoal), not the joint's
         # exact H(stop) + p(continue) H(subgoal): the latter would let the entropy bonus
@@ -259,10 +251,7 @@ class Planner(MapEncoder):
     def act(self, obs: dict, deterministic: bool = False) -> PlannerAct:
         """One decision per env (:class:`PlannerAct`)."""
         stop_d, sub_d, value = self(obs)
-        if stop_d is None:
-            subgoal = sub_d.mean if deterministic else sub_d.sample()
-            stop = (torch.hypot(subgoal[:, 0], subgoal[:, 1]) < self.stop_radius).long()
-        elif deterministic:
+        if deterministic:
             stop, subgoal = stop_d.probs.argmax(-1), sub_d.mean
         else:
             stop, subgoal = stop_d.sample(), sub_d.sample()
