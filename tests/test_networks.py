@@ -242,8 +242,7 @@ def test_untrained_policies_know_nothing_of_the_goal():
     """docs/spec.md section 6: no hand-set state-dependent term in any policy output. The
     cpu preset's untrained planner sets its mean sub-goal at its constant start, 1 m ahead,
     wherever the goal is, and its p(stop) is the stop head's constant start everywhere; the
-    untrained executor's action probabilities are the same wherever
-    its sub-goal is."""
+    untrained executor's action probabilities are the same wherever its sub-goal is."""
     torch.manual_seed(0)
     from plex_ma.config import preset_defaults
 

@@ -376,8 +376,9 @@ def test_env_settings_are_train_flags_that_reach_the_env(tmp_path):
 def test_saved_config_refuses_other_formats_and_ignores_retired_settings():
     """A checkpoint of this format whose config holds retired settings (the teacher and the
     planner's imitation, the planner's own PPO settings, the executor's warm-up, the priors
-    format 1 could hold; a flat method's stop radius) loads without them; their flags no longer exist. A checkpoint of
-    another format (format 1's networks could hold hand-set priors) is refused with one
+    format 1 could hold; a flat method's stop radius) loads without them; their flags no
+    longer exist. A PLEX checkpoint whose planner used the stop radius is refused by name. A
+    checkpoint of another format (format 1's networks could hold hand-set priors) is refused with one
     error that names the format."""
     from plex_ma.trainers.base import CHECKPOINT_FORMAT
 

@@ -170,7 +170,6 @@ class Planner(MapEncoder):
     [``min_subgoal_distance``, rho_max]. Given the executor's ``subgoal_radius``,
     ``min_subgoal_distance`` lies ``SUBGOAL_MARGIN`` beyond it: a nearer sub-goal pays the
     executor nothing (envs/rules.py), so it would STOP on the spot.
-
     """
 
     def __init__(self, ego_channels: int = 2, eli_dim: int = ELI_DIM, use_eli: bool = True,
