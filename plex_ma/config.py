@@ -108,6 +108,8 @@ class TrainConfig:
     """the value-iteration module plans on the ego map's 0.25 m quarter cells (64 x 64) instead of its 0.5 m cells"""
     planner_trunk_stride: int = 1
     """the stride of the planner's second map convolution, which the map arm shares (the paper's: 1, 10,816 features; 2: 3,136)"""
+    planner_goal_rbf: bool = False
+    """the planner's goal features (and the map arm's) also expand the goal distance in 11 Gaussian bumps 0.1 m apart over 0-1 m, a fine reading where the stop is decided"""
     executor_hidden: int = 128
     """GRU hidden size of the executor and the flat GRU policy (512 in the paper)"""
     smt_memory: int = 128

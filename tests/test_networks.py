@@ -335,3 +335,27 @@ def test_constant_starts_are_the_same_in_every_state():
     torch.testing.assert_close(p[:, 1:], torch.full((5, 3), (1 - p_stop) / 3), atol=0.02, rtol=0)  # the moves
 
 
+
+
+def test_goal_rbf_features_read_the_distance_finely_near_the_goal():
+    """planner_goal_features(rbf=True): the five goal features, then one Gaussian bump per
+    centre that peaks (1.0) at its centre, so that 0.18 m and 0.28 m differ by about half
+    an input's range in several inputs (the plain features by at most 0.13). Planners and
+    the map arm built with ``goal_rbf`` take the wider input."""
+    from plex_ma.networks import goal_feature_count, planner_goal_features
+    from plex_ma.networks.planner import GOAL_RBF_CENTRES
+
+    goal = torch.tensor([[c, 0.3] for c in GOAL_RBF_CENTRES] + [[0.18, 0.0], [0.28, 0.0]])
+    plain, fine = planner_goal_features(goal), planner_goal_features(goal, rbf=True)
+    assert fine.shape == (len(goal), goal_feature_count(True)) and plain.shape == (len(goal), goal_feature_count())
+    torch.testing.assert_close(fine[:, :plain.shape[1]], plain)
+    bumps = fine[:len(GOAL_RBF_CENTRES), plain.shape[1]:]
+    torch.testing.assert_close(bumps.diagonal(), torch.ones(len(GOAL_RBF_CENTRES)))
+    assert (plain[-2] - plain[-1]).abs().max() < 0.14
+    assert ((fine[-2] - fine[-1]).abs() > 0.4).sum() >= 3
+    pl = Planner(channels=(8, 8), hidden=64, goal_rbf=True)
+    stop_d, sub_d, value = pl(pl.example_obs(3))
+    assert stop_d.probs.shape == (3, 2) and sub_d.mean.shape == (3, 2) and value.shape == (3,)
+    fm = FlatMapPolicy("gru", 64, gru_hidden=32, goal_rbf=True)
+    logits, value, _, _ = fm(fm.example_obs(2), fm.initial_state(2), torch.ones(2, dtype=torch.bool))
+    assert logits.shape == (2, 4) and value.shape == (2,)

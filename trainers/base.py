@@ -37,7 +37,7 @@ CHECKPOINT_FORMAT = 2  # 2: the networks hold no hand-set priors (format 1's cou
 # The settings that shape the networks (and their action mask): a checkpoint loads only into a run with the same.
 ARCH_KEYS = ("method", "resolution", "eli", "smt_memory", "executor_hidden", "executor_no_reversal")
 PLEX_ARCH_KEYS = ("planner_value_iteration", "planner_fine_map",
-                  "planner_trunk_stride")  # ... and for the methods that read the ego map (the planner's)
+                  "planner_trunk_stride", "planner_goal_rbf")  # ... and for the methods that read the ego map (the planner's)
 NAV_FIELDS = tuple(f.name for f in dataclasses.fields(NavConfig) if f.init)
 
 
@@ -84,7 +84,7 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
     if cfg.method.startswith("plex"):
         kw = dict(use_eli=cfg.env.eli, rho_max=cfg.env.rho_max, subgoal_radius=cfg.env.subgoal_radius,
                   init_std=cfg.planner_subgoal_std, value_iteration=cfg.planner_value_iteration,
-                  fine_map=cfg.planner_fine_map, trunk_stride=cfg.planner_trunk_stride)
+                  fine_map=cfg.planner_fine_map, trunk_stride=cfg.planner_trunk_stride, goal_rbf=cfg.planner_goal_rbf)
         planner = Planner(subgoal_forward=cfg.planner_subgoal_forward, **kw)
         return {"planner": planner,
                 "executor": Executor(memory=memory, resolution=cfg.env.resolution, smt_memory=cfg.smt_memory,
@@ -93,7 +93,7 @@ def build_policies(cfg: TrainConfig) -> dict[str, torch.nn.Module]:
                 gru_hidden=cfg.executor_hidden, no_reversal=cfg.executor_no_reversal)
     if cfg.method == "ppo-gru-map":
         return {"policy": FlatMapPolicy(value_iteration=cfg.planner_value_iteration, fine_map=cfg.planner_fine_map,
-                                        trunk_stride=cfg.planner_trunk_stride,
+                                        trunk_stride=cfg.planner_trunk_stride, goal_rbf=cfg.planner_goal_rbf,
                                         **flat)}
     return {"policy": FlatPolicy(**flat)}
 

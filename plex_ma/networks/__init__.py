@@ -38,7 +38,8 @@ from plex_ma.networks.executor import Executor, ExecutorAct, RGBDEncoder
 from plex_ma.networks.flat import FlatMapPolicy, FlatPolicy
 from plex_ma.networks.memory import GRUMemory, MultiHeadAttention, SMTMemory
 from plex_ma.networks.planner import (GOAL_FEATURES, MAP_PLAN, PI32, PLAN_FEATURES, STOP_INIT_LOGIT, SUBGOAL_MARGIN,
-                                      Head, MapEncoder, Planner, PlannerAct, plan_features, planner_goal_features)
+                                      Head, MapEncoder, Planner, PlannerAct, goal_feature_count, plan_features,
+                                      planner_goal_features)
 from plex_ma.networks.value_iteration import (BELLMAN_UNREACHED, DIAGONALS, EGO_CELL, SUBGOAL_REACH, ValueIteration,
                                               bellman, bellman_reference)
 
@@ -48,7 +49,7 @@ __all__ = [
     "FlatMapPolicy", "FlatPolicy",
     "GRUMemory", "MultiHeadAttention", "SMTMemory",
     "GOAL_FEATURES", "MAP_PLAN", "PI32", "PLAN_FEATURES", "STOP_INIT_LOGIT", "SUBGOAL_MARGIN", "Head", "MapEncoder",
-    "Planner", "PlannerAct", "plan_features", "planner_goal_features",
+    "Planner", "PlannerAct", "goal_feature_count", "plan_features", "planner_goal_features",
     "BELLMAN_UNREACHED", "DIAGONALS", "EGO_CELL", "SUBGOAL_REACH", "ValueIteration", "bellman",
     "bellman_reference",
 ]

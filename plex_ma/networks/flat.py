@@ -11,7 +11,7 @@ from plex_ma.envs.sim.core import NUM_ACTIONS
 from plex_ma.envs.spaces import EGO_CHANNELS, EGO_SIZE
 from plex_ma.networks.common import as_tensor, layer_init
 from plex_ma.networks.executor import Executor
-from plex_ma.networks.planner import (GOAL_FEATURES, MAP_PLAN, PLAN_FEATURES, Head, MapEncoder, plan_features,
+from plex_ma.networks.planner import (MAP_PLAN, PLAN_FEATURES, Head, MapEncoder, goal_feature_count, plan_features,
                                       planner_goal_features)
 
 
@@ -58,12 +58,13 @@ class FlatMapPolicy(FlatPolicy):
 
     def __init__(self, memory: str = "gru", resolution: int = 128, ego_channels: int = 2,
                  value_iteration: bool = False, fine_map: bool = False, trunk_stride: int = 1, hidden: int = 512,
-                 head_hidden: int = 256, **kw):
+                 head_hidden: int = 256, goal_rbf: bool = False, **kw):
         super().__init__(memory=memory, resolution=resolution, **kw)
         self.map = MapEncoder(ego_channels, value_iteration=value_iteration, fine_map=fine_map, trunk_stride=trunk_stride)
+        self.goal_rbf, self.goal_dim = goal_rbf, goal_feature_count(goal_rbf)
         self.map_fc = nn.Sequential(
-            layer_init(nn.Linear(self.map.map_dim + self.eli_dim + GOAL_FEATURES + self.map.vin_dim, hidden)), nn.ReLU())
-        feat = hidden + GOAL_FEATURES + PLAN_FEATURES
+            layer_init(nn.Linear(self.map.map_dim + self.eli_dim + self.goal_dim + self.map.vin_dim, hidden)), nn.ReLU())
+        feat = hidden + self.goal_dim + PLAN_FEATURES
         self.actor = Head(feat, head_hidden, NUM_ACTIONS, 0.01)
         self.critic = Head(feat, head_hidden, 1, 1.0)
 
@@ -86,16 +87,16 @@ class FlatMapPolicy(FlatPolicy):
         plan = obs.get(MAP_PLAN)
         plan = None if plan is None else as_tensor(plan, self.device, torch.float32).reshape(-1, self.map.vin_dim + 2)
         trunk, vin, vin_subgoal = self.map.read_map(ego.reshape(-1, *ego.shape[-3:]), pointgoal, plan)
-        parts = [trunk, planner_goal_features(pointgoal)] + ([vin] if vin is not None else [])
+        parts = [trunk, planner_goal_features(pointgoal, self.goal_rbf)] + ([vin] if vin is not None else [])
         parts.append(plan_features(pointgoal, vin_subgoal))
         reading = torch.cat(parts, dim=-1)
         return x, torch.cat([goal, reading.view(*lead, -1)], dim=-1)
 
     def _heads(self, out: torch.Tensor, goal: torch.Tensor):
         eli = torch.tanh(self.eli_head(out))
-        m, vin = self.map.map_dim, self.map.vin_dim
-        trunk, goal_feats = goal[..., 3:3 + m], goal[..., 3 + m:3 + m + GOAL_FEATURES]
-        vin_feats, plan = goal[..., 3 + m + GOAL_FEATURES:-PLAN_FEATURES], goal[..., -PLAN_FEATURES:]
+        m, g = self.map.map_dim, self.goal_dim
+        trunk, goal_feats = goal[..., 3:3 + m], goal[..., 3 + m:3 + m + g]
+        vin_feats, plan = goal[..., 3 + m + g:-PLAN_FEATURES], goal[..., -PLAN_FEATURES:]
         h = self.map_fc(torch.cat([trunk, eli, goal_feats, vin_feats], dim=-1))
         h = torch.cat([h, goal_feats, plan], dim=-1)
         return self.actor(h), self.critic(h).squeeze(-1), eli

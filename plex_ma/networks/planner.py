@@ -21,6 +21,8 @@ from plex_ma.networks.value_iteration import SUBGOAL_REACH, ValueIteration
 PI32 = float(np.nextafter(np.float32(np.pi), np.float32(0)))
 
 GOAL_FEATURES = 5  # planner_goal_features' width
+GOAL_RBF_CENTRES = tuple(0.1 * k for k in range(11))  # m: the goal distance's Gaussian bumps (goal_rbf)
+GOAL_RBF_WIDTH = 0.1  # m
 PLAN_FEATURES = 4  # plan_features' width
 SUBGOAL_MARGIN = 0.05  # m: sub-goals lie at least this far beyond the executor's sub-goal radius
 MAP_PLAN = "map_plan"  # observation key of a stored value-iteration read-out (MapEncoder.map_plan)
@@ -36,12 +38,22 @@ class PlannerAct(TypedDict):
     value: torch.Tensor  # (B,)
 
 
-def planner_goal_features(goal: torch.Tensor) -> torch.Tensor:
+def goal_feature_count(rbf: bool = False) -> int:
+    """The width of :func:`planner_goal_features`."""
+    return GOAL_FEATURES + (len(GOAL_RBF_CENTRES) if rbf else 0)
+
+
+def planner_goal_features(goal: torch.Tensor, rbf: bool = False) -> torch.Tensor:
     """(B, 2) goal (distance m, direction rad) -> (B, 5): distance / 10, cos, sin, and
     exp(-distance / 0.5) and min(distance, 2) for a fine reading near the goal (where
-    the planner decides to stop)."""
+    the planner decides to stop). With ``rbf``, then the distance expanded in Gaussian bumps
+    (``GOAL_RBF_CENTRES``, 0.1 m apart over 0-1 m, width 0.1 m), so that 0.1 m near the goal
+    moves several inputs by about half their range."""
     d, th = goal[..., 0], goal[..., 1]
-    return torch.stack([d / 10, torch.cos(th), torch.sin(th), torch.exp(-d / 0.5), d.clamp(max=2.0)], dim=-1)
+    feats = [d / 10, torch.cos(th), torch.sin(th), torch.exp(-d / 0.5), d.clamp(max=2.0)]
+    if rbf:
+        feats += [torch.exp(-((d - c) / GOAL_RBF_WIDTH) ** 2) for c in GOAL_RBF_CENTRES]
+    return torch.stack(feats, dim=-1)
 
 
 def plan_features(goal: torch.Tensor, vin_subgoal: torch.Tensor | None) -> torch.Tensor:
@@ -176,15 +188,16 @@ class Planner(MapEncoder):
                  rho_max: float = 4.0, hidden: int = 512, channels: tuple[int, int] = (32, 64),
                  map_size: int = 32, init_std: float = 0.5, head_hidden: int = 256,
                  value_iteration: bool = False, subgoal_radius: float | None = None, fine_map: bool = False,
-                 subgoal_forward: float = 0.0, trunk_stride: int = 1):
+                 subgoal_forward: float = 0.0, trunk_stride: int = 1, goal_rbf: bool = False):
         # ``convs`` and ``vin`` (the map reading) keep their names: checkpoints key on them
         super().__init__(ego_channels, channels, map_size, value_iteration, fine_map, trunk_stride)
         self.eli_dim, self.use_eli, self.rho_max = eli_dim, use_eli, rho_max
+        self.goal_rbf, self.goal_dim = goal_rbf, goal_feature_count(goal_rbf)
         # no sub-goal within the executor's radius (None: any distance)
         self.min_subgoal_distance = 0.0 if subgoal_radius is None else min(subgoal_radius + SUBGOAL_MARGIN, rho_max)
-        self.fc = nn.Sequential(layer_init(nn.Linear(self.map_dim + eli_dim + GOAL_FEATURES + self.vin_dim, hidden)),
+        self.fc = nn.Sequential(layer_init(nn.Linear(self.map_dim + eli_dim + self.goal_dim + self.vin_dim, hidden)),
                                 nn.ReLU())
-        feat = hidden + GOAL_FEATURES + PLAN_FEATURES
+        feat = hidden + self.goal_dim + PLAN_FEATURES
         self.stop_logits = Head(feat, head_hidden, 2, 0.01)
         with torch.no_grad():  # a constant, the same in every state (docs/spec.md section 6 allows it)
             self.stop_logits.linear.bias[1] = STOP_INIT_LOGIT
@@ -196,13 +209,13 @@ class Planner(MapEncoder):
         self.subgoal_log_std = nn.Parameter(torch.full((2,), math.log(init_std)))
 
     def encode(self, obs: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """The trunk: (FC output (B, hidden), goal features (B, GOAL_FEATURES), the raw goal
+        """The trunk: (FC output (B, hidden), goal features (B, goal_dim), the raw goal
         (B, 2), the value-iteration sub-goal (B, 2) or None). A stored read-out under
         ``MAP_PLAN`` replaces the module's (:meth:`MapEncoder.map_plan`)."""
         dev = self.convs[0].weight.device
         ego = as_tensor(obs["ego_map"], dev, torch.float32)
         raw_goal = as_tensor(obs["goal"], dev, torch.float32)
-        goal = planner_goal_features(raw_goal)
+        goal = planner_goal_features(raw_goal, self.goal_rbf)
         if self.use_eli:
             # Stop-gradient (paper 3, SPEC 5): the planner's loss must never reach the
             # executor's parameters, so the ELI always enters the planner detached.
@@ -216,7 +229,7 @@ class Planner(MapEncoder):
         return self.fc(torch.cat(parts, dim=1)), goal, raw_goal, vin_subgoal
 
     def features(self, obs: dict) -> torch.Tensor:
-        """(B, hidden + GOAL_FEATURES + PLAN_FEATURES): what the heads read."""
+        """(B, hidden + goal_dim + PLAN_FEATURES): what the heads read."""
         h, goal, raw_goal, vin_subgoal = self.encode(obs)
         return torch.cat([h, goal, plan_features(raw_goal, vin_subgoal)], dim=1)
 
