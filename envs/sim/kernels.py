@@ -149,6 +149,7 @@ def render(kind, g_off, g_h, g_w, g_ox, g_oy, cs, klo, khi, kmat, kroom,
         oy = g_oy[s]
         px = pos[wi, 0]
         py = pos[wi, 1]
+        orgb = out_rgb[wi].reshape(-1)  # flat: one index per byte instead of four
         for tj in range(tw):
             j = j0 + tj
             phi = math.atan((W / 2.0 - j - 0.5) / f)
@@ -246,12 +247,14 @@ def render(kind, g_off, g_h, g_w, g_ox, g_oy, cs, klo, khi, kmat, kroom,
                         c3 = mat_rgb[m]
                     fac = 1.0 if bax[q] == 0 else 0.78
                     cr, cg, cb = _shade(c3, fac)
+                    ur, ug, ub = np.uint8(cr), np.uint8(cg), np.uint8(cb)
                     dz = min(z0, max_depth) / max_depth
                     for i in range(i0, i1 + 1):
                         dtile[tj, i] = dz
-                        out_rgb[wi, i, j, 0] = np.uint8(cr)
-                        out_rgb[wi, i, j, 1] = np.uint8(cg)
-                        out_rgb[wi, i, j, 2] = np.uint8(cb)
+                        q = (i * W + j) * 3
+                        orgb[q] = ur
+                        orgb[q + 1] = ug
+                        orgb[q + 2] = ub
                     if i1 >= i0:
                         if lo <= 0.0 and hi >= ceiling:
                             top = bot + 1
@@ -272,27 +275,39 @@ def render(kind, g_off, g_h, g_w, g_ox, g_oy, cs, klo, khi, kmat, kroom,
                 if fl <= 0.0:
                     rm = kroom[k]
                     c3 = room_floor_rgb[rm] if rm >= 0 else mat_rgb[m]
+                    # the two checker shades, converted once per surface rather than per pixel
+                    cr, cg, cb = _shade(c3, 1.0)
+                    ur, ug, ub = np.uint8(cr), np.uint8(cg), np.uint8(cb)
+                    cr, cg, cb = _shade(c3, 1.0 - 0.12)
+                    vr, vg, vb = np.uint8(cr), np.uint8(cg), np.uint8(cb)
                     for i in range(ib, bot + 1):
                         zs = (fl - cam_height) * f / (hc - i)
                         if zs < z0:
                             zs = z0
                         d = zs / cphi
                         chk = (int(math.floor((px + d * dx) * 2.0)) + int(math.floor((py + d * dy) * 2.0))) & 1
-                        cr, cg, cb = _shade(c3, 1.0 - 0.12 * chk)
                         dtile[tj, i] = min(zs, max_depth) / max_depth
-                        out_rgb[wi, i, j, 0] = np.uint8(cr)
-                        out_rgb[wi, i, j, 1] = np.uint8(cg)
-                        out_rgb[wi, i, j, 2] = np.uint8(cb)
+                        q = (i * W + j) * 3
+                        if chk:
+                            orgb[q] = vr
+                            orgb[q + 1] = vg
+                            orgb[q + 2] = vb
+                        else:
+                            orgb[q] = ur
+                            orgb[q + 1] = ug
+                            orgb[q + 2] = ub
                 else:
                     cr, cg, cb = _shade(mat_rgb[m], 1.2)
+                    ur, ug, ub = np.uint8(cr), np.uint8(cg), np.uint8(cb)
                     for i in range(ib, bot + 1):
                         zs = (fl - cam_height) * f / (hc - i)
                         if zs < z0:
                             zs = z0
                         dtile[tj, i] = min(zs, max_depth) / max_depth
-                        out_rgb[wi, i, j, 0] = np.uint8(cr)
-                        out_rgb[wi, i, j, 1] = np.uint8(cg)
-                        out_rgb[wi, i, j, 2] = np.uint8(cb)
+                        q = (i * W + j) * 3
+                        orgb[q] = ur
+                        orgb[q + 1] = ug
+                        orgb[q + 2] = ub
                 if ib <= bot:
                     bot = ib - 1
                 # top surface (ceiling or lintel underside): rows that rise above ce before z1
@@ -304,22 +319,25 @@ def render(kind, g_off, g_h, g_w, g_ox, g_oy, cs, klo, khi, kmat, kroom,
                     cr, cg, cb = 236.0, 234.0, 228.0
                 else:
                     cr, cg, cb = _shade(mat_rgb[m], 0.7)
+                ur, ug, ub = np.uint8(cr), np.uint8(cg), np.uint8(cb)
                 for i in range(top, it + 1):
                     zs = (ce - cam_height) * f / (hc - i)
                     if zs < z0:
                         zs = z0
                     dtile[tj, i] = min(zs, max_depth) / max_depth
-                    out_rgb[wi, i, j, 0] = np.uint8(cr)
-                    out_rgb[wi, i, j, 1] = np.uint8(cg)
-                    out_rgb[wi, i, j, 2] = np.uint8(cb)
+                    q = (i * W + j) * 3
+                    orgb[q] = ur
+                    orgb[q + 1] = ug
+                    orgb[q + 2] = ub
                 if it >= top:
                     top = it + 1
             # rows left open (march ended by range or by too many boundaries): far away
             for i in range(top, bot + 1):
                 dtile[tj, i] = 1.0
-                out_rgb[wi, i, j, 0] = np.uint8(128)
-                out_rgb[wi, i, j, 1] = np.uint8(128)
-                out_rgb[wi, i, j, 2] = np.uint8(128)
+                q = (i * W + j) * 3
+                orgb[q] = 128
+                orgb[q + 1] = 128
+                orgb[q + 2] = 128
         od = out_depth[wi].reshape(-1)
         for i in range(H):  # the tile's depth, a row at a time
             p = i * W + j0
