@@ -20,9 +20,10 @@ setup: $(VENV)/.installed
 # seed of pretrained:plex-gru; about an hour on 2 cores), then a greedy evaluation on 100
 # fixed validation episodes. A shorter TRAIN_STEPS decays the learning rates over that.
 TRAIN_STEPS ?= 2048000
+TRAIN_SEED ?= 2
 RUN_DIR ?= runs/quickstart
 train: $(VENV)/.installed
-	$(PY) -m plex_ma.train --preset cpu --method plex-gru --total-steps $(TRAIN_STEPS) --run-dir $(RUN_DIR)
+	$(PY) -m plex_ma.train --preset cpu --method plex-gru --seed $(TRAIN_SEED) --total-steps $(TRAIN_STEPS) --run-dir $(RUN_DIR)
 	$(PY) -m plex_ma.evaluate --checkpoint $(RUN_DIR)/latest.pt --split val --episodes 100 --json $(RUN_DIR)/eval_val.json
 
 test: $(VENV)/.installed

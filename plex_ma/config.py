@@ -78,7 +78,7 @@ class TrainConfig:
     """executor discount per executor step"""
     gamma_pl: float = 0.95
     """planner discount per planner decision (when --planner-step-gamma is None)"""
-    planner_step_gamma: float | None = 0.995
+    planner_step_gamma: float | None = 0.99
     """PLEX only: discount the planner per executor step instead (a decision that lasted k steps: this^k, as options in an SMDP); None: gamma_pl per decision"""
     gamma_flat: float = 0.99
     """flat baselines' discount per step"""
