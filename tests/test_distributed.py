@@ -132,7 +132,11 @@ def test_gradients_identical_across_ranks_after_allreduce(tmp_path):
     assert r0["stats"]["grad_norm"] > 0
 
 
-def test_gradient_hook_is_called_before_clipping():
+def test_gradients_are_averaged_before_clipping(monkeypatch):
+    """ppo_update hands the gradients to the workers' average after backward and before
+    clipping: a stand-in for the all-reduce that scales them shows in the reported norm."""
+    import plex_ma.trainers.ppo as ppo_module
+
     policy = TinyPolicy()
     buf = RolloutBuffer(1, 4)
     buf.add(0, obs={"x": torch.randn(4, 4)}, actions=torch.tensor([0, 1, 2, 0]), log_probs=torch.full((4,), -1.1),
@@ -145,8 +149,9 @@ def test_gradient_hook_is_called_before_clipping():
         for p in m.parameters():
             p.grad.mul_(1000.0)
 
+    monkeypatch.setattr(ppo_module._dist, "average_gradients", hook)
     out = ppo_update(policy, buf, torch.optim.SGD(policy.parameters(), lr=0.0), PPOConfig(update_epochs=1,
-                     num_minibatches=2), grad_hook=hook)
+                     num_minibatches=2))
     assert len(seen) == 2 and out["grad_norm"] > 1.0
 
 

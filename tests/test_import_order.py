@@ -20,7 +20,7 @@ from plex_ma.envs.sim import BatchedSim, generate_episodes
 from plex_ma.envs.sim import corners
 from plex_ma.envs.sim import kernels as K
 
-from .test_sim_helpers import bank_of, small_house
+from .sim_helpers import bank_of, small_house
 
 def fresh_env(**extra: str) -> dict:
     """This process's environment without the wait policy tests/conftest.py set in it."""

@@ -56,7 +56,7 @@ def test_map_planner_over_the_oracle_executor_navigates():
     episodes at 64 px)."""
     env = PlexVectorEnv(8, seed=0, resolution=64, split="test")
     env.worlds.fixed_episodes = list(env.worlds.fixed_episodes[:40])
-    drv = PlexDriver(env, MapPlannerPolicy(env), OracleExecutorPolicy(env))
+    drv = PlexDriver(env, MapPlannerPolicy(), OracleExecutorPolicy(env))
     drv.reset(seed=0)
     infos = {}
     while len(infos) < 40:

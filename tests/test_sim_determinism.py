@@ -11,7 +11,7 @@ from plex_ma.envs.sim import DEFAULT_NUM_SCENES, BatchedSim, SceneBank, generate
 from plex_ma.envs.sim.procgen import HouseParams, generate_house
 from plex_ma.envs.sim.sources import _colour_seed, procgen_scenes, procgen_seed
 
-from .test_sim_helpers import bank_of, small_house
+from .sim_helpers import bank_of, small_house
 
 SCENE_FIELDS = ("walls", "doors", "boxes", "box_heights", "box_categories")
 

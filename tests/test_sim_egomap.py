@@ -12,7 +12,7 @@ import torch
 
 from plex_ma.envs.sim import TURN_LEFT, TURN_RIGHT, BatchedSim, Scene
 
-from .test_sim_helpers import room_walls, sim_at
+from .sim_helpers import room_walls, sim_at
 
 # An 8 m x 8 m room (inner faces at +-3.95 m) with the agent at its centre facing +x, and
 # one box (1 m high) ahead and to the left: 2.1-2.4 m ahead, 0.6-1.4 m to the left.

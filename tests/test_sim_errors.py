@@ -12,7 +12,7 @@ import pytest
 from plex_ma.envs.sim import BatchedSim, Episode, Scene, SceneBank, SceneError, load_scenes, rasterize, scene_bank
 from plex_ma.envs.sim.procgen import HouseParams, generate_house
 
-from .test_sim_helpers import bank_of, room_walls
+from .sim_helpers import bank_of, room_walls
 
 WALLS = np.array(room_walls(0.0, 0.0, 4.0, 4.0))
 

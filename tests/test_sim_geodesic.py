@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from plex_ma.envs.sim import Geodesics, Scene, SceneBank, rasterize
 
-from .test_sim_helpers import (random_navigable_point, reference_distance, reference_field, reference_lookup,
+from .sim_helpers import (random_navigable_point, reference_distance, reference_field, reference_lookup,
                                reference_straight, room_walls, small_house, two_rooms_no_door)
 
 

@@ -15,7 +15,7 @@ from plex_ma.envs.sim import (MOVE_FORWARD, STOP, TURN_LEFT, TURN_RIGHT, Batched
                               SceneBank, rasterize)
 from plex_ma.envs.sim.scene import AGENT_RADIUS
 
-from .test_sim_helpers import (obstacle_clearance, random_navigable_point, room_walls, segment_distance, wall_pieces,
+from .sim_helpers import (obstacle_clearance, random_navigable_point, room_walls, segment_distance, wall_pieces,
                                sim_at, small_house)
 
 

@@ -11,7 +11,7 @@ import pytest
 from plex_ma.envs.sim import BatchedSim, Episode, Scene
 from plex_ma.envs.sim.scene import CEILING_HEIGHT
 
-from .test_sim_helpers import bank_of, room_walls, sim_at
+from .sim_helpers import bank_of, room_walls, sim_at
 
 CAM = BatchedSim.camera_height
 RESOLUTIONS = [64, 96, 97, 128, 256]

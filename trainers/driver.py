@@ -98,7 +98,7 @@ class MapPlannerPolicy:
 
     learns, ground_truth = False, False
 
-    def __init__(self, env: PlexVectorEnv | None = None, line_of_sight: bool = False):
+    def __init__(self, line_of_sight: bool = False):
         self.planner = MapPlanner(line_of_sight=line_of_sight)
         self.name = "map-los" if line_of_sight else "map"
 
@@ -116,7 +116,7 @@ class ValueIterationPlannerPolicy:
 
     learns, ground_truth, name = False, False, "vin"
 
-    def __init__(self, env: PlexVectorEnv | None = None, stop_distance: float = STOP_DISTANCE, fine_map: bool = False):
+    def __init__(self, stop_distance: float = STOP_DISTANCE, fine_map: bool = False):
         self.vin, self.stop_distance = ValueIteration(fine=fine_map), stop_distance
 
     def decide(self, obs: dict, rows: np.ndarray) -> dict:
@@ -289,10 +289,10 @@ def make_planner(kind: str, env: PlexVectorEnv, net=None, deterministic: bool = 
     if kind == "oracle":
         return OraclePlannerPolicy(env)
     if kind in ("map", "map-los"):
-        return MapPlannerPolicy(env, line_of_sight=kind == "map-los")
+        return MapPlannerPolicy(line_of_sight=kind == "map-los")
     if kind == "vin":
         vin = getattr(net, "vin", None)
-        return ValueIterationPlannerPolicy(env, fine_map=vin.fine if vin is not None else fine_map)
+        return ValueIterationPlannerPolicy(fine_map=vin.fine if vin is not None else fine_map)
     raise ValueError(f"unknown planner {kind!r}; choose one of {', '.join(PLANNER_KINDS)}")
 
 

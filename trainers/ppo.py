@@ -259,16 +259,15 @@ def explained_variance(values: torch.Tensor, returns: torch.Tensor) -> float:
 
 
 def ppo_update(policy: nn.Module, batch: RolloutBuffer | Transitions, optimizer: torch.optim.Optimizer,
-               cfg: PPOConfig, generator: torch.Generator | None = None, grad_hook=None) -> dict:
+               cfg: PPOConfig, generator: torch.Generator | None = None) -> dict:
     """``cfg.update_epochs`` epochs of minibatch PPO over a rollout whose returns are computed
     (or over ``Transitions``).
     Returns the mean over minibatch updates of policy_loss, value_loss, entropy, approx_kl,
     clip_fraction and grad_norm (before clipping), and the explained variance of the
     rollout's values.
 
-    ``grad_hook(policy)`` runs after ``backward`` and before clipping; by default it is
-    ``distributed.average_gradients`` (the DD-PPO all-reduce; a no-op unless distributed)."""
-    hook = _dist.average_gradients if grad_hook is None else grad_hook
+    After ``backward`` and before clipping, ``distributed.average_gradients`` averages the
+    gradients over the workers (the DD-PPO all-reduce; a no-op unless distributed)."""
     sums: dict[str, float] = {}
     n = 0
     for _ in range(cfg.update_epochs):
@@ -279,7 +278,7 @@ def ppo_update(policy: nn.Module, batch: RolloutBuffer | Transitions, optimizer:
             if mb is not None:
                 loss, stats = ppo_loss(policy, mb, cfg)
                 loss.backward()
-            hook(policy)
+            _dist.average_gradients(policy)
             grad_norm = nn.utils.clip_grad_norm_(policy.parameters(), cfg.max_grad_norm).item()
             optimizer.step()
             if stats is None:

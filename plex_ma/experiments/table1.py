@@ -48,6 +48,7 @@ import numpy as np
 
 from plex_ma.cli import output_path
 from plex_ma.trainers.base import EpisodeStats
+from plex_ma.trainers.evaluation import METRICS
 
 from . import repo_root
 from .common import machine, mean_sd_se, provenance, pyplot, save_figure, write_json
@@ -76,7 +77,6 @@ ARMS: dict[str, Arm] = {a.name: a for a in [
     Arm("plex-gru-mix", "PLEX GRU, procgen+r2v", ("--method", "plex-gru", "--scenes", "procgen+r2v")),
 ]}
 DEFAULT_ARMS = ["plex-gru", "plex-smt", "plex-gru-noeli", "ppo-gru", "ppo-smt", "ppo-gru-map"]
-METRICS = ("success", "spl", "reward", "distance_to_goal", "collisions")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -1,4 +1,4 @@
-"""Shared helpers of the simulator tests (no tests here): hand-made scenes, a reference
+"""Shared helpers of the simulator tests: hand-made scenes, a reference
 Dijkstra, and the exact obstacle geometry of a scene.
 
 Hand-made scenes put every wall and box face on a multiple of 0.05 m, so the 0.05 m grid
