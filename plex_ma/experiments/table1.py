@@ -53,10 +53,6 @@ from plex_ma.trainers.evaluation import METRICS
 from . import repo_root
 from .common import machine, mean_sd_se, provenance, pyplot, save_figure, write_json
 
-# Older PLEX logs carry a "phase": 0 the retired warm-up under random sub-goals, 1 and 2 the
-# retired teacher's (2: the learned planner imitating it), 3 both agents learning. From phase
-# 2 on the learned planner sets the sub-goals; current logs have no phase (it always does).
-LEARNED_PLANNER_PHASE = 2
 
 
 @dataclass(frozen=True)
@@ -160,16 +156,13 @@ def _load_eval(path: Path) -> dict | None:
 
 def _load_curve(path: Path) -> dict | None:
     """A run's training curve: reward and success of its last 100 training episodes (sampled
-    actions) at each logged step, NaN until 100 have ended. In an older PLEX log only the
-    phases in which the learned planner acts count (before them random sub-goals or a teacher
-    planner's), and the window starts empty when they begin."""
+    actions) at each logged step, NaN until 100 have ended."""
     if not path.is_file():
         return None
     with gzip.open(path, "rt") as f:
         rows = [json.loads(line) for line in f if line.strip()]
     rows = [r for r in rows if r.get("metrics/episodes", 0) > 0]
-    own = np.array([r.get("phase", LEARNED_PLANNER_PHASE) >= LEARNED_PLANNER_PHASE
-                    and r["metrics/episodes"] >= EpisodeStats.window for r in rows], bool)
+    own = np.array([r["metrics/episodes"] >= EpisodeStats.window for r in rows], bool)
     return {"step": np.array([r["step"] for r in rows], float),
             "reward": np.where(own, [r["reward"] for r in rows], np.nan),
             "success": np.where(own, [r["metrics/success"] for r in rows], np.nan)}
