@@ -348,100 +348,112 @@ def _help() -> str:
     return "\n\n".join(paras[:i] + bench_envs.__doc__.strip().split("\n\n")[1:] + paras[i + 1:])
 
 
-def main(argv: list[str] | None = None) -> None:
-    p = Parser(prog="python -m plex_ma.bench", description=_help(),
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = p.add_subparsers(dest="what", required=True)
+_POSITIVE, _AT_LEAST_0 = integer(1), integer(0)
 
-    positive, at_least_0 = integer(1), integer(0)
 
-    def common(sp, steps: int, steps_help: str) -> None:
-        sp.add_argument("--num-envs", type=positive, default=64, help="worlds stepped per call")
-        sp.add_argument("--resolution", type=integer(MIN_RESOLUTION, MAX_RESOLUTION), default=128,
-                        help="square image size in pixels")
-        sp.add_argument("--steps", type=positive, default=steps, help=steps_help)
-        sp.add_argument("--seed", type=at_least_0, default=0)
-        sp.add_argument("--scenes", default="procgen", help="scene source")
-        sp.add_argument("--num-scenes", type=positive, default=None,
-                        help="training scenes (default: all of the source's)")
-        sp.add_argument("--json", action="store_true", help="print one JSON object")
+def _common(sp, steps: int, steps_help: str) -> None:
+    """The options every batched environment bench shares."""
+    sp.add_argument("--num-envs", type=_POSITIVE, default=64, help="worlds stepped per call")
+    sp.add_argument("--resolution", type=integer(MIN_RESOLUTION, MAX_RESOLUTION), default=128,
+                    help="square image size in pixels")
+    sp.add_argument("--steps", type=_POSITIVE, default=steps, help=steps_help)
+    sp.add_argument("--seed", type=_AT_LEAST_0, default=0)
+    sp.add_argument("--scenes", default="procgen", help="scene source")
+    sp.add_argument("--num-scenes", type=_POSITIVE, default=None,
+                    help="training scenes (default: all of the source's)")
+    sp.add_argument("--json", action="store_true", help="print one JSON object")
 
+
+def _add_env_benches(sub) -> None:
+    """The environment benches' subcommands."""
     ps = sub.add_parser("sim", help="raw batched simulator throughput")
-    common(ps, 300, "batched steps to time")
+    _common(ps, 300, "batched steps to time")
     pe = sub.add_parser("env", help="AEC env turns/s, vector env steps/s and their ratio to the raw simulator")
-    common(pe, 200, "vector env calls to time (the raw simulator gets as many)")
-    pe.add_argument("--rounds", type=positive, default=10, help="alternate the vector env and the raw simulator this "
+    _common(pe, 200, "vector env calls to time (the raw simulator gets as many)")
+    pe.add_argument("--rounds", type=_POSITIVE, default=10, help="alternate the vector env and the raw simulator this "
                     "many times (both timed in each round)")
-    pe.add_argument("--warmup", type=at_least_0, default=20, help="untimed calls of each before timing")
-    pe.add_argument("--aec-turns", type=positive, default=2000, help="AEC turns to time")
+    pe.add_argument("--warmup", type=_AT_LEAST_0, default=20, help="untimed calls of each before timing")
+    pe.add_argument("--aec-turns", type=_POSITIVE, default=2000, help="AEC turns to time")
     pe.add_argument("--planner-stop-prob", type=probability, default=0.01, help="chance that a planner action is STOP")
     pe.add_argument("--executor-stop-prob", type=probability, default=0.1, help="chance that an executor action is STOP")
     h = "one world: env() and compat_env() turns/s against the raw one-world simulator, alternating"
     pn = sub.add_parser("turns", help=h, description=h)
     pn.add_argument("--resolution", type=integer(MIN_RESOLUTION, MAX_RESOLUTION), default=128,
                     help="square image size in pixels")
-    pn.add_argument("--turns", type=positive, default=1000, help="turns (simulator steps) of each per round")
-    pn.add_argument("--rounds", type=positive, default=5, help="rounds; each times all three, first one rotating")
-    pn.add_argument("--warmup", type=at_least_0, default=100, help="untimed turns of each before timing")
-    pn.add_argument("--seed", type=at_least_0, default=0)
+    pn.add_argument("--turns", type=_POSITIVE, default=1000, help="turns (simulator steps) of each per round")
+    pn.add_argument("--rounds", type=_POSITIVE, default=5, help="rounds; each times all three, first one rotating")
+    pn.add_argument("--warmup", type=_AT_LEAST_0, default=100, help="untimed turns of each before timing")
+    pn.add_argument("--seed", type=_AT_LEAST_0, default=0)
     pn.add_argument("--scenes", default="procgen", help="scene source")
-    pn.add_argument("--num-scenes", type=positive, default=None, help="training scenes (default: all of the source's)")
+    pn.add_argument("--num-scenes", type=_POSITIVE, default=None, help="training scenes (default: all of the source's)")
     pn.add_argument("--planner-stop-prob", type=probability, default=0.01, help="chance that a planner action is STOP")
     pn.add_argument("--executor-stop-prob", type=probability, default=0.1, help="chance that an executor action is STOP")
     pn.add_argument("--json", action="store_true", help="print one JSON object")
     h = "make_vec's batched PointNav vector env against SyncVectorEnv of single envs (default: 16 worlds at 64 px)"
     pv = sub.add_parser("gymvec", help=h, description=h)
-    common(pv, 300, "vector steps to time (each env gets as many)")
+    _common(pv, 300, "vector steps to time (each env gets as many)")
     pv.set_defaults(num_envs=16, resolution=64)
-    pv.add_argument("--rounds", type=positive, default=10, help="alternate the two envs this many times")
-    pv.add_argument("--warmup", type=at_least_0, default=20, help="untimed steps of each before timing")
+    pv.add_argument("--rounds", type=_POSITIVE, default=10, help="alternate the two envs this many times")
+    pv.add_argument("--warmup", type=_AT_LEAST_0, default=20, help="untimed steps of each before timing")
     pv.add_argument("--stop-prob", type=probability, default=0.0, help="chance that an action is STOP (ends the episode)")
-    pv.add_argument("--max-steps", type=positive, default=500, help="actions before an episode truncates")
+    pv.add_argument("--max-steps", type=_POSITIVE, default=500, help="actions before an episode truncates")
     pg = sub.add_parser("geodesic", help="sub-goal distance queries: corner graphs against A*, one thread")
-    pg.add_argument("--queries", type=positive, default=4000, help="queries to time")
-    pg.add_argument("--astar-queries", type=positive, default=500, help="of those, how many A* answers too")
-    pg.add_argument("--seed", type=at_least_0, default=0)
+    pg.add_argument("--queries", type=_POSITIVE, default=4000, help="queries to time")
+    pg.add_argument("--astar-queries", type=_POSITIVE, default=500, help="of those, how many A* answers too")
+    pg.add_argument("--seed", type=_AT_LEAST_0, default=0)
     pg.add_argument("--scenes", default="procgen", help="scene source")
-    pg.add_argument("--num-scenes", type=positive, default=None, help="training scenes (default: the source's)")
+    pg.add_argument("--num-scenes", type=_POSITIVE, default=None, help="training scenes (default: the source's)")
     pg.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def _add_other_benches(sub) -> None:
+    """The subcommands of the import-order, recording, training and optimiser benches."""
     po = sub.add_parser("order", help="env steps/s with torch or numba imported before plex_ma, in fresh processes")
     po.add_argument("--first", nargs="+", default=["plex_ma", "torch", "numba"],
                     help="modules to import before plex_ma, one child each (the first is the reference)")
-    po.add_argument("--rounds", type=positive, default=3, help="children per module, in rotating order")
-    po.add_argument("--steps", type=positive, default=300, help="single-env steps per timed block")
-    po.add_argument("--num-envs", type=positive, default=16, help="worlds of the vector env")
+    po.add_argument("--rounds", type=_POSITIVE, default=3, help="children per module, in rotating order")
+    po.add_argument("--steps", type=_POSITIVE, default=300, help="single-env steps per timed block")
+    po.add_argument("--num-envs", type=_POSITIVE, default=16, help="worlds of the vector env")
     po.add_argument("--resolution", type=integer(CNN_MIN_RESOLUTION, MAX_RESOLUTION), default=64,
                     help=f"square image size in pixels (at least {CNN_MIN_RESOLUTION}, for the CNN)")
-    po.add_argument("--blocks", type=positive, default=3, help="timed blocks per child (the best counts)")
+    po.add_argument("--blocks", type=_POSITIVE, default=3, help="timed blocks per child (the best counts)")
     po.add_argument("--no-torch-env", action="store_true", help="leave out the env + CNN loop")
     po.add_argument("--json", action="store_true", help="print one JSON object")
     pr = sub.add_parser("record", help="training time with and without rerun recordings (the overhead)")
     pr.add_argument("--preset", default="cpu", help="training preset")
     pr.add_argument("--method", default="plex-gru", help="training method")
-    pr.add_argument("--updates", type=positive, default=20, help="executor updates per timed training")
-    pr.add_argument("--record-interval", type=positive, default=10, help="updates between recordings in the timed run")
-    pr.add_argument("--default-interval", type=positive, default=None,
+    pr.add_argument("--updates", type=_POSITIVE, default=20, help="executor updates per timed training")
+    pr.add_argument("--record-interval", type=_POSITIVE, default=10, help="updates between recordings in the timed run")
+    pr.add_argument("--default-interval", type=_POSITIVE, default=None,
                     help="interval to extrapolate to (default: TrainConfig.record_interval)")
-    pr.add_argument("--seed", type=at_least_0, default=0)
+    pr.add_argument("--seed", type=_AT_LEAST_0, default=0)
     pr.add_argument("--json", action="store_true", help="print one JSON object")
     pt = sub.add_parser("train", help="end-to-end training steps/s, time shares, FLOPs and update efficiency")
     pt.add_argument("--preset", default="cpu", help="training preset")
     pt.add_argument("--method", default="plex-gru", help="training method")
-    pt.add_argument("--steps", type=positive, default=8192, help="environment steps to train for")
-    pt.add_argument("--num-envs", type=positive, default=None, help="worlds (default: the preset's)")
+    pt.add_argument("--steps", type=_POSITIVE, default=8192, help="environment steps to train for")
+    pt.add_argument("--num-envs", type=_POSITIVE, default=None, help="worlds (default: the preset's)")
     pt.add_argument("--resolution", type=integer(CNN_MIN_RESOLUTION, MAX_RESOLUTION), default=None,
                     help="image size (default: the preset's)")
-    pt.add_argument("--seed", type=at_least_0, default=0)
+    pt.add_argument("--seed", type=_AT_LEAST_0, default=0)
     pt.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a TrainConfig field, e.g. --set num_minibatches=4 (repeatable)")
     pt.add_argument("--device", default="auto", help=DEVICE_HELP)
     pt.add_argument("--json", action="store_true", help="print one JSON object")
     pa = sub.add_parser("adam", help="ms per Adam step over the PLEX networks: per-tensor loop, foreach, fused")
     pa.add_argument("--preset", default="cpu", help="training preset (the networks' sizes)")
-    pa.add_argument("--steps", type=positive, default=20, help="steps per timed round")
-    pa.add_argument("--rounds", type=positive, default=5, help="alternate the three implementations this many times")
-    pa.add_argument("--threads", type=positive, default=1, help="torch threads")
+    pa.add_argument("--steps", type=_POSITIVE, default=20, help="steps per timed round")
+    pa.add_argument("--rounds", type=_POSITIVE, default=5, help="alternate the three implementations this many times")
+    pa.add_argument("--threads", type=_POSITIVE, default=1, help="torch threads")
     pa.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = Parser(prog="python -m plex_ma.bench", description=_help(),
+               formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="what", required=True)
+    _add_env_benches(sub)
+    _add_other_benches(sub)
     a = p.parse_args(argv)
     try:
         out = _run(p, a)
@@ -458,7 +470,6 @@ def main(argv: list[str] | None = None) -> None:
                   f"{out['record_interval']} updates; {100 * out['expected_overhead_at_default_interval']:.1f} % / "
                   f"{100 * out['expected_cpu_overhead_at_default_interval']:.1f} % expected at the default interval "
                   f"({out['default_interval']} updates)")
-
 
 if __name__ == "__main__":
     main()

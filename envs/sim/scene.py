@@ -214,7 +214,22 @@ def rasterize(scene: Scene, cell_size: float = CELL_SIZE, agent_radius: float = 
     H = int(np.ceil((ymax + margin - origin[1]) / cell_size))
     if H * W > 4000 * 4000:
         raise SceneError(f"scene {scene.scene_id!r}: {W * cell_size:.0f} x {H * cell_size:.0f} m is too large")
-    shape = (H, W)
+    wall, door = _walls_and_doors(scene, origin, cell_size, (H, W))
+    furniture = _furniture(scene, wall, origin, cell_size)
+    room, outside, num_rooms = _rooms(wall, door)
+    kind, lo, hi, mat, kroom = _kinds(scene, wall, door, furniture, room, outside, num_rooms)
+    nav, comp = _navigable(kind, lo, hi, cell_size, agent_radius)
+    if comp.max() < 0:
+        raise SceneError(f"scene {scene.scene_id!r}: no navigable space for an agent of radius {agent_radius} m")
+    return SceneGrid(
+        scene_id=scene.scene_id, origin=(float(origin[0]), float(origin[1])), cell_size=float(cell_size),
+        kind=kind, kind_lo=lo, kind_hi=hi, kind_mat=mat, kind_room=kroom, nav=nav, room=room, component=comp,
+        num_rooms=num_rooms, seed=seed,
+    )
+
+
+def _walls_and_doors(scene: Scene, origin, cell_size: float, shape) -> tuple[np.ndarray, np.ndarray]:
+    """The cells of the walls and of the door openings cut into them (boolean grids)."""
     wall = np.zeros(shape, bool)
     half = scene.wall_thickness / 2
     for seg in scene.walls:
@@ -227,8 +242,13 @@ def rasterize(scene: Scene, cell_size: float = CELL_SIZE, agent_radius: float = 
         door[r, c] = True
     door &= wall
     wall &= ~door
+    return wall, door
 
-    furniture = np.full(shape, -1, np.int32)
+
+def _furniture(scene: Scene, wall: np.ndarray, origin, cell_size: float) -> np.ndarray:
+    """Each cell's furniture box (its index in ``scene.boxes``), -1 where there is none."""
+    H, W = wall.shape
+    furniture = np.full(wall.shape, -1, np.int32)
     for b, (x0, y0, x1, y1) in enumerate(scene.boxes):
         c0 = max(int(np.ceil((x0 - origin[0]) / cell_size - 0.5)), 0)
         c1 = min(int(np.floor((x1 - origin[0]) / cell_size - 0.5)) + 1, W)
@@ -237,17 +257,23 @@ def rasterize(scene: Scene, cell_size: float = CELL_SIZE, agent_radius: float = 
         if c1 > c0 and r1 > r0:
             sub = furniture[r0:r1, c0:c1]
             sub[~wall[r0:r1, c0:c1]] = b
+    return furniture
 
-    # Rooms: connected open space with doors closed. The component touching the grid's
-    # border is the outside of the building, which becomes solid void.
+
+def _rooms(wall: np.ndarray, door: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Rooms: connected open space with doors closed; returns each cell's room (-1 outside
+    and in walls), the outside mask and the number of rooms. The component touching the
+    grid's border is the outside of the building, which becomes solid void. Doors that lead
+    outside are closed here (in place: they become wall)."""
+    H, W = wall.shape
     open_space = ~wall & ~door
     labels, n = ndimage.label(open_space)
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
     outside = np.isin(labels, border[border > 0])
-    # Doors that lead outside stay closed (a front door is a wall here): a door is open
-    # only if every open cell next to it belongs to the inside.
-    # Each door is examined in its bounding box padded by one cell (the reach of its ring).
-    lab_d, nd = ndimage.label(door, structure=np.ones((3, 3)))
+    # A front door is a wall here: a door is open only if every open cell next to it belongs
+    # to the inside. Each door is examined in its bounding box padded by one cell (the reach
+    # of its ring).
+    lab_d, _ = ndimage.label(door, structure=np.ones((3, 3)))
     for d, sl in enumerate(ndimage.find_objects(lab_d), start=1):
         if sl is None:
             continue
@@ -258,22 +284,24 @@ def rasterize(scene: Scene, cell_size: float = CELL_SIZE, agent_radius: float = 
         if np.any(outside[win] & ring) or not np.any(ring):
             door[win][m] = False
             wall[win][m] = True
-    room = np.full(shape, -1, np.int32)
     inside_labels = np.unique(labels[(labels > 0) & ~outside])
     remap = np.full(n + 1, -1, np.int32)
     remap[inside_labels] = np.arange(len(inside_labels), dtype=np.int32)
     room = remap[labels]
     room[outside] = -1
-    num_rooms = len(inside_labels)
+    return room, outside, len(inside_labels)
 
-    # Kind table: free floor per room, door threshold, wall, void, lintel, furniture.
+
+def _kinds(scene: Scene, wall, door, furniture, room, outside, num_rooms: int):
+    """The kind grid and its table (lo and hi heights, material, room): free floor per room,
+    door threshold, wall, void, lintel, one furniture kind per (height, category)."""
     lo, hi, mat, kroom = [], [], [], []
 
     def add(l, h, m, r):
         lo.append(l); hi.append(h); mat.append(m); kroom.append(r)
         return len(lo) - 1
 
-    kind = np.zeros(shape, np.int32)
+    kind = np.zeros(wall.shape, np.int32)
     for r in range(num_rooms):
         add(0.0, 0.0, MAT_FREE, r)
     k_void = add(0.0, CEILING_HEIGHT, MAT_VOID, -1)
@@ -293,9 +321,12 @@ def rasterize(scene: Scene, cell_size: float = CELL_SIZE, agent_radius: float = 
                        for b in range(len(scene.boxes))], np.int32)
         m = (furniture >= 0) & ~outside
         kind[m] = fk[furniture[m]]
+    return (kind, np.asarray(lo, np.float32), np.asarray(hi, np.float32), np.asarray(mat, np.int32),
+            np.asarray(kroom, np.int32))
 
-    kind_lo = np.asarray(lo, np.float32)
-    kind_hi = np.asarray(hi, np.float32)
+
+def _navigable(kind, kind_lo, kind_hi, cell_size: float, agent_radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The navigable cells and their connected components (-1 off the navigable space)."""
     # Anything whose solid part starts below the agent's height blocks it.
     blocking = (kind_hi[kind] > 0) & (kind_lo[kind] < AGENT_HEIGHT)
     # Exact clearance: a cell is navigable when every point of it is at least agent_radius
@@ -308,13 +339,5 @@ def rasterize(scene: Scene, cell_size: float = CELL_SIZE, agent_radius: float = 
     # Components as the geodesic search moves: a diagonal step needs both side cells free,
     # so only 4-neighbour connections join cells (a full 3x3 structure would join cells
     # that touch only at a corner, which no path can pass).
-    comp, ncomp = ndimage.label(nav)
-    comp = comp.astype(np.int32) - 1
-    if ncomp == 0:
-        raise SceneError(f"scene {scene.scene_id!r}: no navigable space for an agent of radius {agent_radius} m")
-    return SceneGrid(
-        scene_id=scene.scene_id, origin=(float(origin[0]), float(origin[1])), cell_size=float(cell_size),
-        kind=kind, kind_lo=kind_lo, kind_hi=kind_hi, kind_mat=np.asarray(mat, np.int32),
-        kind_room=np.asarray(kroom, np.int32), nav=nav, room=room, component=comp,
-        num_rooms=num_rooms, seed=seed,
-    )
+    comp, _ = ndimage.label(nav)
+    return nav, comp.astype(np.int32) - 1
