@@ -64,6 +64,8 @@ class TrainConfig:
     """Adam learning rate (both agents)"""
     planner_lr: float | None = None
     """PLEX only: the planner's Adam learning rate (None: --lr)"""
+    planner_target_kl: float | None = None
+    """PLEX only: end the planner's PPO epochs early, after the first whose mean approximate KL exceeds this (None: always --ppo-epochs)"""
     planner_subgoal_std: float = 0.5
     """PLEX only: the starting standard deviation of the planner's sampled sub-goal (rho in m, theta in rad)"""
     curriculum_steps: int = 400_000
@@ -225,6 +227,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     need(cfg.executor_hidden >= 8, "executor_hidden", "must be >= 8")
     need(cfg.lr > 0, "lr", "must be positive")
     need(cfg.planner_lr is None or cfg.planner_lr > 0, "planner_lr", "must be positive")
+    need(cfg.planner_target_kl is None or cfg.planner_target_kl > 0, "planner_target_kl", "must be positive")
     need(cfg.planner_subgoal_std > 0, "planner_subgoal_std", "must be positive")
     need(cfg.rollout_steps >= 2, "rollout_steps", "must be >= 2")
     need(cfg.n_pl >= 1, "n_pl", "must be >= 1")

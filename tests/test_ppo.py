@@ -108,9 +108,38 @@ def test_ppo_update_reduces_loss_planner():
     for _ in range(3):
         stats = ppo_update(pl, buf, opt, cfg, generator=torch.Generator().manual_seed(1))
     assert set(stats) == {"policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction",
-                          "explained_variance", "grad_norm"}
-    assert stats["approx_kl"] > 0 and stats["grad_norm"] > 0
+                          "explained_variance", "grad_norm", "epochs"}
+    assert stats["approx_kl"] > 0 and stats["grad_norm"] > 0 and stats["epochs"] == cfg.update_epochs
     assert _loss(pl, buf, cfg) < before - 0.05
+
+
+def _planner_batch():
+    torch.manual_seed(0)
+    pl = Planner(channels=(8, 8), hidden=64)
+    buf = RolloutBuffer(8, 4)
+    g = torch.Generator().manual_seed(0)
+    for t in range(8):
+        obs = pl.example_obs(4, g)
+        out = pl.act(obs)
+        buf.add(t, obs=obs, actions={"stop": out["stop"], "raw_subgoal": out["raw_subgoal"]}, log_probs=out["log_prob"],
+                values=out["value"], rewards=torch.randn(4, generator=g), dones=torch.zeros(4))
+    buf.compute_returns(0.95, 0.95, last_values=torch.zeros(4))
+    return pl, buf
+
+
+def test_target_kl_ends_the_epochs_once_the_policy_has_moved():
+    """With target_kl the update stops after the first epoch whose mean approximate KL
+    exceeds it; the policy then moves less than over all epochs."""
+    moved = {}
+    for target in (None, 1e-6, 1e3):
+        pl, buf = _planner_batch()
+        before = [p.detach().clone() for p in pl.parameters()]
+        stats = ppo_update(pl, buf, torch.optim.Adam(pl.parameters(), lr=1e-2), PPOConfig(target_kl=target),
+                           generator=torch.Generator().manual_seed(1))
+        moved[target] = sum((p.detach() - b).norm().item() for p, b in zip(pl.parameters(), before))
+        # the first epoch's second minibatch is read after the first one's step: its KL is > 0
+        assert stats["epochs"] == (1 if target == 1e-6 else 4), (target, stats)
+    assert moved[1e-6] < 0.8 * moved[None] and moved[1e3] == moved[None]
 
 
 def test_ppo_update_reduces_loss_recurrent():

@@ -321,6 +321,9 @@ def test_cli_help_and_bad_config(capsys):
     with pytest.raises(ValueError, match="--planner-lr"):
         parse(["--preset", "smoke", "--planner-lr", "0"])
     assert parse(["--preset", "smoke", "--planner-lr", "1e-4"]).planner_lr == 1e-4
+    with pytest.raises(ValueError, match="--planner-target-kl"):
+        parse(["--preset", "smoke", "--planner-target-kl", "0"])
+    assert parse(["--preset", "smoke", "--planner-target-kl", "0.03"]).planner_target_kl == 0.03
 
 
 def test_defaults_are_the_cpu_recipe_and_flat_methods_get_theirs():

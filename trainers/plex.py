@@ -31,6 +31,7 @@ the planner's parameters, so the planner's update cannot change the executor.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import deque
 from collections.abc import Callable
@@ -123,7 +124,8 @@ class PlexTrainer(Trainer):
     def _update_planner(self) -> dict:
         """PPO on the planner's closed decisions (GAE along each world's chain)."""
         batch = self.decisions.batch(self.cfg.gamma_pl, self.cfg.gae_lambda, self.device)
-        stats = ppo_update(self.planner, batch, self.opts["planner"], self.ppo, self.planner_gen)
+        ppo = dataclasses.replace(self.ppo, target_kl=self.cfg.planner_target_kl)
+        stats = ppo_update(self.planner, batch, self.opts["planner"], ppo, self.planner_gen)
         self.updates["planner"] += 1
         return {f"learner/planner_{k}": v for k, v in stats.items()} | {"learner/planner_batch": len(batch.values)}
 

@@ -9,7 +9,8 @@
   non-recurrent policy whose transitions do not come in (T, B) rollouts (the planner: one
   transition per decision, see ``decisions.py``).
 - ``ppo_loss`` / ``ppo_update``: clipped surrogate, (optionally clipped) value loss,
-  entropy bonus, advantage normalisation per minibatch, gradient-norm clipping.
+  entropy bonus, advantage normalisation per minibatch, gradient-norm clipping, and an
+  optional early end of the epochs once the policy has moved far enough (``target_kl``).
 
 A policy plugs in through one of two methods (see ``evaluate``):
 ``evaluate_sequences(obs (T, B, ...), actions (T, B), starts (T, B), initial_state)`` for
@@ -44,6 +45,7 @@ class PPOConfig:
     update_epochs: int = 4
     num_minibatches: int = 2
     norm_adv: bool = True
+    target_kl: float | None = None  # end the epochs after one whose mean approx KL exceeds this (CleanRL's)
 
 
 def compute_gae(rewards, values, dones, truncated, bootstrap_values, gamma, lam: float):
@@ -263,14 +265,18 @@ def ppo_update(policy: nn.Module, batch: RolloutBuffer | Transitions, optimizer:
     """``cfg.update_epochs`` epochs of minibatch PPO over a rollout whose returns are computed
     (or over ``Transitions``).
     Returns the mean over minibatch updates of policy_loss, value_loss, entropy, approx_kl,
-    clip_fraction and grad_norm (before clipping), and the explained variance of the
-    rollout's values.
+    clip_fraction and grad_norm (before clipping), the explained variance of the rollout's
+    values and the number of epochs run (fewer than ``update_epochs`` where ``target_kl``
+    ended them: after the first epoch whose minibatches' mean approximate KL exceeds it, on
+    any worker).
 
     After ``backward`` and before clipping, ``distributed.average_gradients`` averages the
     gradients over the workers (the DD-PPO all-reduce; a no-op unless distributed)."""
     sums: dict[str, float] = {}
-    n = 0
+    n = epochs = 0
     for _ in range(cfg.update_epochs):
+        epochs += 1
+        kl, n_epoch = 0.0, 0
         # distributed: every worker steps as often as the one with the most minibatches (None: none left here)
         for mb in _dist.common_length(batch.minibatches(cfg.num_minibatches, generator)):
             optimizer.zero_grad()
@@ -287,6 +293,11 @@ def ppo_update(policy: nn.Module, batch: RolloutBuffer | Transitions, optimizer:
             for k, v in stats.items():
                 sums[k] = sums.get(k, 0.0) + v
             n += 1
+            kl += stats["approx_kl"]
+            n_epoch += 1
+        if cfg.target_kl is not None and _dist.any_true(kl / max(n_epoch, 1) > cfg.target_kl):
+            break
     out = {k: v / max(n, 1) for k, v in sums.items()}
     out["explained_variance"] = explained_variance(batch.values, batch.returns)
+    out["epochs"] = float(epochs)
     return out
