@@ -33,7 +33,8 @@ from typing import NamedTuple
 import numpy as np
 
 from .actions import InvalidAction, discrete, real
-from .sim import BatchedSim, Episode, Geodesics, SceneBank, scene_bank
+from .sim import BatchedSim, Episode, Geodesics, SceneBank, generate_episodes, scene_bank
+from .sim.scene import SceneGrid
 from .sim.core import (ACTION_NAMES, NUM_ACTIONS, POSE_NOISE_RULE, RESOLUTION_RULE, STOP, check_pose_noise,
                         check_resolution)
 from .sim.episodes import MAX_GEODESIC, EpisodeFileError, default_episode_file, load_episodes, sample_episode
@@ -193,6 +194,30 @@ def worlds_data(cfg: NavConfig) -> tuple[SceneBank, list[Episode] | None]:
     return bank, eps
 
 
+@dataclass(frozen=True)
+class WorldView:
+    """One world's state as a recorder or viewer draws it, copied out of the simulator.
+
+    Positions are world-frame metres, angles radians; ``goal_polar`` and
+    ``subgoal_raw_polar`` are (distance, direction) from the agent's noisy pose, as its
+    sensors give them. The sub-goal fields are None in flat worlds."""
+
+    episode: Episode
+    grid: SceneGrid  # the scene's grid (its top-down map)
+    position: np.ndarray  # (2,) the true position
+    heading: float
+    distance_to_goal: float  # geodesic
+    collisions: int
+    goal_polar: np.ndarray
+    resolution: int  # of the images
+    rgb: np.ndarray | None  # (H, W, 3) uint8; None when not asked for
+    depth: np.ndarray | None  # (H, W, 1) float32
+    turn: int | None = None  # PLEX: whose action the world needs next (PLANNER or EXECUTOR)
+    subgoal: np.ndarray | None = None  # (2,) PLEX: the sub-goal, snapped to navigable space
+    subgoal_raw: np.ndarray | None = None  # (2,) ... as the planner proposed it
+    subgoal_raw_polar: np.ndarray | None = None
+
+
 class _Worlds:
     """Episodes, metrics and infos of N worlds; subclasses add the agents' rules."""
 
@@ -276,6 +301,24 @@ class _Worlds:
         rows = np.asarray(rows, np.int64).reshape(-1)
         return np.concatenate([self.sim.pos[rows], self.sim.heading[rows, None]], axis=1)
 
+    def view(self, i: int, images: bool = True) -> WorldView:
+        """World ``i``'s :class:`WorldView` (its images only with ``images``)."""
+        sim, row = self.sim, np.array([i])
+        return WorldView(
+            episode=sim.episodes[i], grid=self.bank.grids[int(sim.scene_idx[i])], position=sim.pos[i].copy(),
+            heading=float(sim.heading[i]), distance_to_goal=float(sim.distance_to_goal[i]),
+            collisions=int(self.collisions[i]), goal_polar=sim.polar_to(sim.goal[row], row)[0],
+            resolution=sim.resolution, rgb=sim.rgb[i].copy() if images else None,
+            depth=sim.depth[i].copy() if images else None, **self._agent_view(i))
+
+    def _agent_view(self, i: int) -> dict:
+        return {}
+
+    def generate_episodes(self, n: int, seed: int) -> list[Episode]:
+        """``n`` episodes over this split's scenes, the same for the same seed (what
+        evaluation runs where a split has no episode file)."""
+        return generate_episodes(self.bank, n, seed)
+
 
 @dataclass
 class PlexStep:
@@ -327,6 +370,11 @@ class PlexWorlds(_Worlds):
         self.planner_decisions = np.zeros(n, np.int64)
         self._row0 = np.zeros(1, np.int64)  # the rows of step_one's world
         self._action0 = np.zeros(1, np.int64)  # step_one's executor action, for the simulator
+
+    def _agent_view(self, i: int) -> dict:
+        row = np.array([i])
+        return {"turn": int(self.turn[i]), "subgoal": self.subgoal[i].copy(), "subgoal_raw": self.subgoal_raw[i].copy(),
+                "subgoal_raw_polar": self.sim.polar_to(self.subgoal_raw[row], row)[0]}
 
     def reset_rows(self, rows, episodes=None) -> None:
         super().reset_rows(rows, episodes)

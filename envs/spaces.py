@@ -10,10 +10,11 @@ import numpy as np
 from gymnasium import spaces
 
 from .rules import ELI_DIM, NavConfig, PlexConfig
-from .sim.core import NUM_ACTIONS
+from .sim.core import NUM_ACTIONS, BatchedSim
 
-EGO_CHANNELS = 6  # obstacles, explored free space, the obstacles of each cell's four 0.25 m quarters
-EGO_SIZE = 32
+# The ego map's geometry, as the simulator draws it: channels (obstacles, explored free
+# space, the obstacles of each cell's four 0.25 m quarters), cells per side, cell size (m).
+EGO_CHANNELS, EGO_SIZE, EGO_CELL = BatchedSim.ego_channels, BatchedSim.ego_size, BatchedSim.ego_cell
 MAX_GOAL_DISTANCE = 100.0  # metres; bounds of the polar goal vectors
 
 

@@ -14,6 +14,12 @@ is the scene's string id.
 Returned image arrays are views into the simulator's buffers: copy them if you keep them
 past the next ``step``, and do not write into them (a world whose agent did not move keeps
 its image from one step to the next).
+
+Both read one world through the same small API, which recorders and evaluation use instead
+of the worlds' internals: ``world(i)`` (a :class:`~plex_ma.envs.rules.WorldView` copy:
+episode, scene grid, pose, distance, collisions, images and, for PLEX, turn and sub-goal),
+``ego_map(i)``, ``fixed_episodes`` (the episodes worlds take in order as they free up;
+settable) and ``generate_episodes(n, seed)``.
 """
 
 from __future__ import annotations
@@ -22,7 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rules import EXECUTOR, INFO_KEYS, PLANNER, NavConfig, PlexConfig, PlexWorlds, PointNavWorlds, make_config
+from .rules import (EXECUTOR, INFO_KEYS, PLANNER, NavConfig, PlexConfig, PlexWorlds, PointNavWorlds, WorldView,
+                    make_config)
+from .sim import Episode
 from .spaces import (executor_action_space, executor_observation_space, planner_action_space,
                      planner_observation_space, pointnav_observation_space)
 
@@ -50,7 +58,43 @@ class PlexVecStep:
     final_pose: np.ndarray | None  # (ended, 3) float64: x, y (m), heading (rad) at the end (rows = ended)
 
 
-class PlexVectorEnv:
+class _VectorEnv:
+    """What both vector envs share: reading one world, and the episodes the worlds take."""
+
+    worlds: PlexWorlds | PointNavWorlds
+
+    @property
+    def scene_ids(self) -> list[str]:
+        """The scenes of the split, in ``scene_index`` order."""
+        return list(self.worlds.bank.scene_ids)
+
+    def world(self, i: int, images: bool = True) -> WorldView:
+        """World ``i``'s state, copied (its images only with ``images``)."""
+        return self.worlds.view(i, images)
+
+    def ego_map(self, i: int) -> np.ndarray:
+        """World ``i``'s planner ego map (6, 32, 32) float32 (PLEX, or flat with ``egomap``)."""
+        return self.worlds.sim.egomap(np.array([i]))[0]
+
+    @property
+    def fixed_episodes(self) -> list[Episode] | None:
+        """The split's fixed episodes (None: episodes are sampled). Set it to a list to make the
+        worlds take those episodes in order as they free up (cycling), from the next reset."""
+        return self.worlds.fixed_episodes
+
+    @fixed_episodes.setter
+    def fixed_episodes(self, episodes: list[Episode] | None) -> None:
+        self.worlds.fixed_episodes = None if episodes is None else list(episodes)
+
+    def generate_episodes(self, n: int, seed: int) -> list[Episode]:
+        """``n`` episodes over the split's scenes, the same for the same seed."""
+        return self.worlds.generate_episodes(n, seed)
+
+    def close(self) -> None:
+        pass
+
+
+class PlexVectorEnv(_VectorEnv):
     """N PLEX worlds with autoreset (see the module docstring)."""
 
     def __init__(self, num_envs: int, seed: int | None = None, **config):
@@ -108,16 +152,8 @@ class PlexVectorEnv:
     def info(self, i: int) -> dict:
         return self.worlds.info(i)
 
-    @property
-    def scene_ids(self) -> list[str]:
-        """The scenes of the split, in ``scene_index`` order."""
-        return list(self.worlds.bank.scene_ids)
 
-    def close(self) -> None:
-        pass
-
-
-class PointNavVectorEnv:
+class PointNavVectorEnv(_VectorEnv):
     """N flat PointNav worlds with autoreset, for the baselines' trainer.
 
     ``step(actions)`` returns ``(obs, rewards, terminated, truncated, infos)`` where
@@ -138,11 +174,6 @@ class PointNavVectorEnv:
         self.worlds = PointNavWorlds(self.config, self.num_envs, seed, egomap=egomap)
         self.observation_space = pointnav_observation_space(self.config, ego_map=egomap)
         self.final_pose: np.ndarray | None = None
-
-    @property
-    def scene_ids(self) -> list[str]:
-        """The scenes of the split, in ``scene_index`` order."""
-        return list(self.worlds.bank.scene_ids)
 
     def _obs(self) -> dict:
         w = self.worlds
@@ -169,8 +200,5 @@ class PointNavVectorEnv:
             w.reset_rows(ended)
         return self._obs(), rew, term, trunc, infos
 
-    def close(self) -> None:
-        pass
 
-
-__all__ = ["PlexVectorEnv", "PlexVecStep", "PointNavVectorEnv", "PLANNER", "EXECUTOR", "INFO_KEYS"]
+__all__ = ["PlexVectorEnv", "PlexVecStep", "PointNavVectorEnv", "WorldView", "PLANNER", "EXECUTOR", "INFO_KEYS"]

@@ -174,3 +174,33 @@ def test_bench_env_runs(capsys):
               "sim_steps_per_second", "ratio", "ratio_all_actions", "ratio_cpu"):
         assert out[k] > 0, k
     assert out["num_envs"] == 2 and out["resolution"] == 32
+
+
+def test_world_views_and_fixed_episodes_through_the_public_api():
+    """world(i) copies what one world holds (a later step does not change it); setting
+    fixed_episodes makes the worlds take those episodes in order at the next reset; the
+    flat env has no sub-goal and no ego map unless built with one."""
+    env = PlexVectorEnv(2, seed=0, **SMALL)
+    eps = env.generate_episodes(3, seed=7)
+    assert [e.episode_id for e in eps] == [e.episode_id for e in env.generate_episodes(3, seed=7)]
+    env.fixed_episodes = eps
+    env.reset()
+    assert env.fixed_episodes == eps
+    v = env.world(1)
+    assert v.episode is eps[1] and v.turn == PLANNER and v.grid.scene_id == eps[1].scene_id
+    np.testing.assert_allclose(v.position, eps[1].start_position)
+    assert v.goal_polar[0] == pytest.approx(np.hypot(*(np.asarray(eps[1].goal_position) - v.position)), abs=1e-5)
+    assert v.rgb.shape == (SMALL["resolution"], SMALL["resolution"], 3) and v.collisions == 0
+    assert env.ego_map(1).shape == (6, 32, 32) and env.world(0, images=False).rgb is None
+    before = v.rgb.copy()
+    env.step(stop=np.zeros(2, np.int64), subgoal=np.array([[1.0, 0.0], [1.0, 0.0]], np.float32))
+    env.step(action=np.array([1, 1]), eli=np.zeros((2, 128), np.float32))  # forward
+    np.testing.assert_array_equal(v.rgb, before)  # the view is a copy
+    after = env.world(1, images=False)
+    assert after.turn == EXECUTOR and after.subgoal_raw_polar is not None
+    assert not np.array_equal(after.position, v.position) or after.collisions == 1
+    flat = PointNavVectorEnv(1, seed=0, **SMALL)
+    flat.reset()
+    assert flat.world(0).subgoal is None and flat.world(0).turn is None
+    with pytest.raises(RuntimeError, match="egomap=False"):
+        flat.ego_map(0)

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from plex_ma.envs.sim import generate_episodes
 from plex_ma.envs.sim.episodes import CLOSE_FAR_SPLIT
 from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
 
@@ -39,9 +38,9 @@ def load_policies(path: str | Path, device: str | torch.device = "cpu") -> tuple
 
 def episode_set(env, split: str, n: int, seed: int):
     """The first ``n`` fixed episodes of the env's split (generated if it has no file)."""
-    eps = env.worlds.fixed_episodes
+    eps = env.fixed_episodes
     if eps is None:
-        eps = generate_episodes(env.worlds.bank, n, seed)
+        eps = env.generate_episodes(n, seed)
     if n > len(eps):
         warnings.warn(f"only {len(eps)} episodes in the {split} set; evaluating those", stacklevel=2)
     return list(eps[:n])
@@ -79,7 +78,7 @@ def _run_episodes(cfg, nets, split, episodes, scenes, num_envs, episodes_file, r
         raise ValueError("episode ids in the evaluation set are not unique")
     # Worlds take the set's episodes in order as they free up; once the set is exhausted
     # they cycle through it again and those repeats are ignored.
-    env.worlds.fixed_episodes = eps
+    env.fixed_episodes = eps
     scene_of = {e.episode_id: e.scene_id for e in eps}  # infos name the scene by index only
     results: dict[int, dict] = {}
     rng = np.random.default_rng(seed)

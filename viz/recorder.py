@@ -41,6 +41,7 @@ import numpy as np
 import rerun as rr
 
 from plex_ma.envs.sim.topdown import topdown_view
+from plex_ma.envs.spaces import EGO_CELL, EGO_SIZE
 from plex_ma.envs.vector import PlexVectorEnv, PointNavVectorEnv
 
 from .layout import (AGENT, APPLICATION_ID, COLLISION, GOAL, PALETTE, PATH, START, SUBGOAL, SUBGOAL_RAW, TIMELINE,
@@ -235,10 +236,8 @@ class EpisodeRecorder:
             self._ep = None
             return
         env, w = self._env, self.world
-        worlds = env.worlds
-        sim = worlds.sim
-        episode = sim.episodes[w]
-        grid = worlds.bank.grids[int(sim.scene_idx[w])]
+        view = env.world(w, images=self.images)
+        episode, grid = view.episode, view.grid
         (ox, oy), (h, wd) = grid.origin, grid.shape
         m = 0.5
         extent = (ox - m, ox + wd * grid.cell_size + m, oy - m, oy + h * grid.cell_size + m)
@@ -251,19 +250,19 @@ class EpisodeRecorder:
                           f"**agent** {'PLEX (planner + executor)' if self._plex else 'flat PointNav'}")
         rec.log("episode", rr.TextDocument(ep.description, media_type="text/markdown"), static=True)
         ep.grid, ep.goal = grid, np.asarray(episode.goal_position)
-        r = sim.resolution
+        r = view.resolution
         self._stride = max(1, -(-r // self.max_image_size)) if self.max_image_size else 1
         self._log_static(rec, ep.grid, episode, len(range(0, r, self._stride)))
-        pos = sim.pos[w].copy()
+        pos = view.position
         ep.path.append((float(pos[0]), float(pos[1])))
-        ep.heading = float(sim.heading[w])
+        ep.heading = view.heading
         ep.add("agent", (pos, ep.heading))
-        ep.add("scalar:metrics/distance_to_goal", float(sim.distance_to_goal[w]))
+        ep.add("scalar:metrics/distance_to_goal", view.distance_to_goal)
         ep.add("scalar:metrics/collisions", 0.0)
         if self.images:
-            ep.add("images", (sim.rgb[w].copy(), sim.depth[w].copy()))
-        if self._plex and int(worlds.turn[w]) == 0:
-            self._add_ego_map(ep, sim.egomap(np.array([w]))[0])
+            ep.add("images", (view.rgb, view.depth))
+        if self._plex and view.turn == 0:
+            self._add_ego_map(ep, env.ego_map(w))
         if self.flush_every <= 1:
             self._flush(ep)
 
@@ -316,9 +315,8 @@ class EpisodeRecorder:
     def _add_ego_map(self, ep: _Episode, ego: np.ndarray) -> None:
         if not self.images:
             return
-        sim, w = self._env.worlds.sim, self.world
-        polar = sim.polar_to(sim.goal[w:w + 1], np.array([w]))[0]
-        ep.add("ego", (np.array(ego, np.float32), ego_pixel(polar, ego.shape[-1], sim.ego_cell)))
+        polar = self._env.world(self.world, images=False).goal_polar
+        ep.add("ego", (np.array(ego, np.float32), ego_pixel(polar, ego.shape[-1], EGO_CELL)))
 
     def _planner_step(self, ep: _Episode, res, ended: bool, info) -> None:
         w = self.world
@@ -328,18 +326,16 @@ class EpisodeRecorder:
             ep.add("scalar:reward/planner", r)
             ep.add("events", (f"step {ep.t}: planner STOP, {info['distance_to_goal']:.2f} m from the goal", "INFO"))
             return
-        worlds = self._env.worlds
-        sim = worlds.sim
-        sg, raw = worlds.subgoal[w].copy(), worlds.subgoal_raw[w].copy()
+        view = self._env.world(w, images=False)
+        sg, raw = view.subgoal, view.subgoal_raw
         ep.k += 1
         ep.subgoals.append((float(sg[0]), float(sg[1])))
         ep.subgoals_raw.append((float(raw[0]), float(raw[1])))
         ep.add("subgoals", len(ep.subgoals))
-        pos = sim.pos[w].copy()
+        pos = view.position
         ep.add("subgoal_line", np.stack([pos, sg]).astype(np.float32))
         if self.images:
-            polar = sim.polar_to(raw[None], np.array([w]))[0]
-            ep.add("ego_subgoal", ego_pixel(polar, sim.ego_size, sim.ego_cell))
+            ep.add("ego_subgoal", ego_pixel(view.subgoal_raw_polar, EGO_SIZE, EGO_CELL))
         d = float(np.hypot(*(raw - pos)))
         snap = float(np.hypot(*(raw - sg)))
         ep.add("events", (f"step {ep.t}: sub-goal #{ep.k} at ({sg[0]:.2f}, {sg[1]:.2f}), {d:.2f} m from the agent"
@@ -351,15 +347,13 @@ class EpisodeRecorder:
 
         ``info`` and ``final_pose`` (x, y, heading) are those of the episode if it ended in
         this action (None otherwise): the env has then already reset the world."""
-        worlds, w = self._env.worlds, self.world
-        sim = worlds.sim
         ep.t += 1
         if info is not None:
             pos, heading = np.array(final_pose[:2], np.float64), float(final_pose[2])
             dist, coll = float(info["distance_to_goal"]), int(info["collisions"])
         else:
-            pos, heading = sim.pos[w].copy(), float(sim.heading[w])
-            dist, coll = float(sim.distance_to_goal[w]), int(worlds.collisions[w])
+            view = self._env.world(self.world, images=False)
+            pos, heading, dist, coll = view.position, view.heading, view.distance_to_goal, view.collisions
         ep.path.append((float(pos[0]), float(pos[1])))
         ep.heading = heading
         ep.add("agent", (pos, heading))
