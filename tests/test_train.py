@@ -387,7 +387,7 @@ def test_saved_config_refuses_other_formats_and_ignores_retired_settings():
 
     cfg = preset_defaults("cpu")
     retired = {"teacher": "map-los", "teacher_subgoal_steps": 260_000, "planner_imitation_steps": 724_000,
-               "imitation_minibatches": 8, "planner_entropy_coef": None, "planner_target_kl": None,
+               "imitation_minibatches": 8, "planner_entropy_coef": None,
                "planner_minibatches": 2, "executor_goal_skip": True, "planner_warmup_steps": 40_000,
                "warmup_scenes": "open-room", "warmup_max_steps": 40, "planner_prior": False,
                "executor_stop_prior": None, "executor_heading_prior": None}
@@ -404,7 +404,7 @@ def test_saved_config_refuses_other_formats_and_ignores_retired_settings():
                          "config": dataclasses.asdict(flat) | {"planner_stop_radius": 0.2}}) == flat
     assert not preset_defaults("paper").executor_no_reversal
     for flag in ("--teacher-subgoal-steps", "--planner-imitation-steps", "--planner-minibatches",
-                 "--planner-entropy-coef", "--planner-target-kl", "--executor-goal-skip",
+                 "--planner-entropy-coef", "--executor-goal-skip",
                  "--planner-warmup-steps", "--warmup-max-steps", "--warmup-scenes", "--executor-stop-prior",
                  "--executor-heading-prior", "--planner-stop-radius"):
         with pytest.raises(ValueError, match=f"unrecognized arguments: {flag}"):

@@ -422,8 +422,9 @@ def loader_fingerprint() -> str:
     """Changes whenever a loader setting, or the rasteriser's code, that decides whether a
     plan loads changes (then the shipped index is not trusted; see :func:`r2v_scenes`)."""
     try:
-        raster_code = hashlib.sha256(
-            (inspect.getsource(_scene.rasterize) + inspect.getsource(_scene._segment_cells)).encode()).hexdigest()
+        steps = (_scene.rasterize, _scene._segment_cells, _scene._walls_and_doors, _scene._furniture, _scene._rooms,
+                 _scene._kinds, _scene._navigable)
+        raster_code = hashlib.sha256("".join(inspect.getsource(f) for f in steps).encode()).hexdigest()
     except (OSError, TypeError):
         raster_code = "unknown"
     key = [LOADER_VERSION, raster_code, DEFAULT_SCALE, WALL_THICKNESS, SNAP_TOLERANCE_PX, DOOR_TOLERANCE_PX, DOOR_INSET,
