@@ -61,8 +61,8 @@ class TrainConfig:
     checkpoint: str | None = None
     """start the networks from this checkpoint's weights (a file or pretrained:NAME) and fine-tune them with fresh optimisers from step 0; a checkpoint in --run-dir is resumed instead"""
     lr: float = 1e-3
-    """Adam learning rate (both agents)"""
-    planner_lr: float | None = None
+    """Adam learning rate (the executor's and the flat policy's; the planner's where --planner-lr is None)"""
+    planner_lr: float | None = 5e-4
     """PLEX only: the planner's Adam learning rate (None: --lr)"""
     planner_target_kl: float | None = None
     """PLEX only: end the planner's PPO epochs early, after the first whose mean approximate KL exceeds this (None: always --ppo-epochs)"""
@@ -110,7 +110,7 @@ class TrainConfig:
     """the value-iteration module plans on the ego map's 0.25 m quarter cells (64 x 64) instead of its 0.5 m cells"""
     planner_trunk_stride: int = 1
     """the stride of the planner's second map convolution, which the map arm shares (the paper's: 1, 10,816 features; 2: 3,136)"""
-    planner_goal_rbf: bool = False
+    planner_goal_rbf: bool = True
     """the planner's goal features (and the map arm's) also expand the goal distance in 11 Gaussian bumps 0.1 m apart over 0-1 m, a fine reading where the stop is decided"""
     executor_hidden: int = 128
     """GRU hidden size of the executor and the flat GRU policy (512 in the paper)"""
@@ -196,7 +196,7 @@ def paper_recipe(method: str) -> dict:
                       executor_no_reversal=False, executor_stop_bias=0.0, planner_subgoal_forward=0.0,
                       planner_trunk_stride=1, curriculum_steps=0,
                       planner_value_iteration=False, planner_fine_map=False, planner_step_gamma=None,
-                      torch_threads=0)
+                      planner_goal_rbf=False, torch_threads=0)
 
 
 # Each preset's recipe for a method: the values that differ from TrainConfig's defaults.

@@ -33,11 +33,23 @@ class CheckpointError(RuntimeError):
     """A checkpoint is missing, corrupt, truncated or incompatible; the message says which."""
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_FILE_MODE = 0o666 & ~_umask()  # what open() would give a new file: mkstemp's is 0o600
+
+
 def atomic_save(obj, path: str | os.PathLike) -> None:
+    """``torch.save`` to a temporary file beside ``path``, then renamed over it: a crash or
+    a full disk leaves the previous file whole. The file gets open()'s usual permissions."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, _FILE_MODE)
         with os.fdopen(fd, "wb") as f:
             torch.save(obj, f)
             f.flush()
