@@ -90,30 +90,8 @@ def _loss(policy, buf, cfg):
         return ppo_loss(policy, next(buf.minibatches(1)), cfg)[0].item()
 
 
-def test_ppo_update_reduces_loss_planner():
-    torch.manual_seed(0)
-    pl = Planner(channels=(8, 8), hidden=64)
-    T, B = 8, 4
-    buf = RolloutBuffer(T, B)
-    g = torch.Generator().manual_seed(0)
-    for t in range(T):
-        obs = pl.example_obs(B, g)
-        out = pl.act(obs)
-        buf.add(t, obs=obs, actions={"stop": out["stop"], "raw_subgoal": out["raw_subgoal"]}, log_probs=out["log_prob"],
-                values=out["value"], rewards=torch.randn(B, generator=g), dones=torch.zeros(B))
-    buf.compute_returns(0.95, 0.95, last_values=torch.zeros(B))
-    cfg = PPOConfig(num_minibatches=2)
-    before = _loss(pl, buf, cfg)
-    opt = torch.optim.Adam(pl.parameters(), lr=1e-3)
-    for _ in range(3):
-        stats = ppo_update(pl, buf, opt, cfg, generator=torch.Generator().manual_seed(1))
-    assert set(stats) == {"policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction",
-                          "explained_variance", "grad_norm", "epochs"}
-    assert stats["approx_kl"] > 0 and stats["grad_norm"] > 0 and stats["epochs"] == cfg.update_epochs
-    assert _loss(pl, buf, cfg) < before - 0.05
-
-
 def _planner_batch():
+    """A small planner and one 8-step rollout of 4 worlds under it, returns computed."""
     torch.manual_seed(0)
     pl = Planner(channels=(8, 8), hidden=64)
     buf = RolloutBuffer(8, 4)
@@ -125,6 +103,19 @@ def _planner_batch():
                 values=out["value"], rewards=torch.randn(4, generator=g), dones=torch.zeros(4))
     buf.compute_returns(0.95, 0.95, last_values=torch.zeros(4))
     return pl, buf
+
+
+def test_ppo_update_reduces_loss_planner():
+    pl, buf = _planner_batch()
+    cfg = PPOConfig(num_minibatches=2)
+    before = _loss(pl, buf, cfg)
+    opt = torch.optim.Adam(pl.parameters(), lr=1e-3)
+    for _ in range(3):
+        stats = ppo_update(pl, buf, opt, cfg, generator=torch.Generator().manual_seed(1))
+    assert set(stats) == {"policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction",
+                          "explained_variance", "grad_norm", "epochs"}
+    assert stats["approx_kl"] > 0 and stats["grad_norm"] > 0 and stats["epochs"] == cfg.update_epochs
+    assert _loss(pl, buf, cfg) < before - 0.05
 
 
 def test_target_kl_ends_the_epochs_once_the_policy_has_moved():
